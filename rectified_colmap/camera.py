@@ -1,0 +1,116 @@
+"""Cameras: pycolmap.Camera objects, COLMAP pixel convention, any COLMAP camera model.
+
+Rays are in the camera frame (x right, y down, z forward), scaled to z = 1. Distortion is
+handled by pycolmap's own ``cam_from_img``/``img_from_cam``, so every model COLMAP knows is
+supported consistently for depth back-projection, warps and keypoints.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .conventions import pixel_centers
+
+logger = logging.getLogger(__name__)
+
+# Models whose params are exactly the focal length(s) and principal point.
+PINHOLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE"}
+
+
+def model_name(camera: pycolmap.Camera) -> str:
+    return camera.model.name if hasattr(camera.model, "name") else str(camera.model)
+
+
+def is_pinhole(camera: pycolmap.Camera) -> bool:
+    """True when the camera has no distortion terms (or all of them are zero)."""
+    if model_name(camera) in PINHOLE_MODELS:
+        return True
+    extra = np.asarray(camera.params)[len(_focal_and_pp(camera)):]
+    return bool(np.all(extra == 0))
+
+
+def _focal_and_pp(camera: pycolmap.Camera) -> list[int]:
+    idx = list(camera.focal_length_idxs()) + list(camera.principal_point_idxs())
+    return idx
+
+
+def calibration_matrix(camera: pycolmap.Camera) -> np.ndarray:
+    """K (3, 3) of the camera's pinhole part, COLMAP pixel convention."""
+    return np.asarray(camera.calibration_matrix(), dtype=np.float64)
+
+
+def image_to_rays(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) COLMAP pixel coordinates -> (N, 3) undistorted rays with z = 1."""
+    xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    n = np.asarray(camera.cam_from_img(xy), dtype=np.float64)
+    return np.concatenate([n, np.ones((len(n), 1))], axis=1)
+
+
+def rays_to_image(camera: pycolmap.Camera, rays: np.ndarray) -> np.ndarray:
+    """(N, 3) rays in the camera frame (z > 0) -> (N, 2) COLMAP pixel coordinates.
+
+    Rays with z <= 0 map to NaN.
+    """
+    rays = np.asarray(rays, dtype=np.float64).reshape(-1, 3)
+    out = np.full((len(rays), 2), np.nan)
+    front = rays[:, 2] > 1e-12
+    if front.any():
+        n = np.ascontiguousarray(rays[front] / rays[front, 2:3])
+        out[front] = np.asarray(camera.img_from_cam(n), dtype=np.float64)
+    return out
+
+
+def grid_rays(camera: pycolmap.Camera, width: int, height: int) -> np.ndarray:
+    """Rays (height, width, 3) float64 through the centres of a width x height grid that
+    covers the whole image (the grid may be a downsampling of the image)."""
+    xy = pixel_centers(width, height, camera.width, camera.height)
+    return image_to_rays(camera, xy.reshape(-1, 2)).reshape(height, width, 3)
+
+
+def make_camera(model: str, params: list[float] | np.ndarray, width: int, height: int
+                ) -> pycolmap.Camera:
+    """A camera from COLMAP's model name and parameter list (COLMAP order and convention)."""
+    cam = pycolmap.Camera(model=model, width=int(width), height=int(height),
+                          params=[float(p) for p in params])
+    if not cam.verify_params():
+        raise ValueError(f"camera model {model} takes {len(cam.params)} params, "
+                         f"got {len(params)}: {list(params)}")
+    return cam
+
+
+def parse_camera_params(text: str) -> list[float]:
+    """'fx,fy,cx,cy' -> [fx, fy, cx, cy] (COLMAP's --ImageReader.camera_params syntax)."""
+    try:
+        return [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError as e:
+        raise ValueError(f"cannot parse camera params {text!r}: {e}") from None
+
+
+def infer_camera(image_path: Path, model: str = "SIMPLE_RADIAL") -> tuple[pycolmap.Camera, bool]:
+    """A camera from the image's EXIF as COLMAP does. Returns (camera, focal_is_prior).
+
+    ``focal_is_prior`` is False when the focal length is COLMAP's guess (1.2 x max side).
+    """
+    cam = pycolmap.infer_camera_from_image(str(image_path))
+    if cam is None:
+        raise ValueError(f"{image_path}: cannot read image to infer its camera")
+    if model != model_name(cam):
+        f = cam.mean_focal_length()
+        cam = make_camera(model, _default_params(model, f, cam.width, cam.height),
+                          cam.width, cam.height) if model else cam
+    has_prior = bool(getattr(cam, "has_prior_focal_length", False))
+    return cam, has_prior
+
+
+def _default_params(model: str, f: float, w: int, h: int) -> list[float]:
+    probe = pycolmap.Camera(model=model, width=w, height=h)
+    params = [0.0] * len(probe.params)
+    for i in probe.focal_length_idxs():
+        params[i] = f
+    pp = list(probe.principal_point_idxs())
+    params[pp[0]], params[pp[1]] = w / 2.0, h / 2.0
+    return params

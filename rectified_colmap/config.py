@@ -1,0 +1,116 @@
+"""All configuration defaults, in one place.
+
+Every stage takes its own small dataclass; :class:`ExtractConf` bundles them. Like hloc's
+``confs``, a configuration can be given as a nested dict and merged over the defaults with
+:func:`ExtractConf.from_dict`, and written back with :meth:`ExtractConf.to_dict`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass
+class NormalConf:
+    """Depth -> normals (rectified_colmap.normals)."""
+
+    work_max_size: int = 640
+    """Depth, normals and plane labels are computed at this max image side (pixels)."""
+    window: int = 5
+    """Side of the square window of the local plane fit (odd)."""
+    max_depth_jump: float = 0.1
+    """A window whose (max-min)/min depth exceeds this is a discontinuity: no normal."""
+    max_planarity: float = 0.02
+    """Max ratio of the smallest to the middle eigenvalue of the window's scatter matrix."""
+
+
+@dataclass
+class PlaneConf:
+    """Normals -> dominant directions -> plane patches (rectified_colmap.planes)."""
+
+    max_angle_deg: float = 20.0
+    """A pixel joins a direction when its normal is within this angle of it (or its antipode)."""
+    min_area_frac: float = 0.005
+    """Connected components smaller than this fraction of the image are dropped."""
+    num_samples: int = 20000
+    """Normals subsampled for fitting the three directions."""
+    num_restarts: int = 8
+    """Initialisations of the orthogonal k-means (best inlier count wins)."""
+    num_iters: int = 20
+    inlier_angle_deg: float = 15.0
+    """Normals further than this from every axis are outliers while fitting."""
+    opening_radius: int = 1
+    """Morphological opening of each label mask before components (pixels at work size)."""
+
+
+@dataclass
+class RectifyConf:
+    """Plane patches -> homographies and rectified images (rectified_colmap.rectify)."""
+
+    max_viewing_angle_deg: float = 80.0
+    """Crop: drop pixels whose viewing ray makes more than this angle with the normal."""
+    min_rectify_angle_deg: float = 0.0
+    """Patches seen closer than this to fronto-parallel are left to plain SIFT."""
+    max_patch_side: int = 2048
+    """Cap on the side of a rectified patch (pixels)."""
+    max_patch_area_factor: float = 1.0
+    """Cap on the rectified area of a patch, as a multiple of its area in the original image."""
+    border: int = 6
+    """Features closer than this to the border of the warped region are dropped (pixels)."""
+
+
+@dataclass
+class SiftConf:
+    """SIFT (COLMAP's, through pycolmap) and the feature budget."""
+
+    max_num_features: int = 8192
+    """Budget for the whole image, shared between patches and the non-planar remainder."""
+    first_octave: int = -1
+    peak_threshold: float = 0.0066666666666666671
+    edge_threshold: float = 10.0
+    max_num_orientations: int = 2
+    upright: bool = False
+
+
+@dataclass
+class DepthConf:
+    """Where depth comes from and how disparity is turned into depth."""
+
+    disparity_shift: str = "zero"
+    """'zero' (t = 0) or 'orthogonal' (shift from two orthogonal dominant planes)."""
+
+
+@dataclass
+class ExtractConf:
+    normals: NormalConf = field(default_factory=NormalConf)
+    planes: PlaneConf = field(default_factory=PlaneConf)
+    rectify: RectifyConf = field(default_factory=RectifyConf)
+    sift: SiftConf = field(default_factory=SiftConf)
+    depth: DepthConf = field(default_factory=DepthConf)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, conf: dict[str, Any] | None = None) -> "ExtractConf":
+        """Defaults updated by a (possibly partial) nested dict; unknown keys raise."""
+        out = cls()
+        for section, values in (conf or {}).items():
+            if not hasattr(out, section):
+                raise KeyError(f"unknown configuration section {section!r}")
+            sub = getattr(out, section)
+            for key, value in values.items():
+                if not hasattr(sub, key):
+                    raise KeyError(f"unknown configuration key {section}.{key}")
+                setattr(sub, key, type(getattr(sub, key))(value))
+        return out
+
+
+# hloc-style named configurations.
+confs: dict[str, dict[str, Any]] = {
+    "rectsift": {},
+    "rectsift-fast": {"normals": {"work_max_size": 480}, "sift": {"max_num_features": 4096}},
+    "sift": {"planes": {"min_area_frac": 2.0}},  # no patch can pass: exactly plain SIFT
+}

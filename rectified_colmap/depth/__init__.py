@@ -1,0 +1,79 @@
+"""Depth sources: the seam between "where depth comes from" and the geometry.
+
+A depth source is any callable ``source(image, camera, name) -> DepthMap | None``:
+
+- ``image``: (H, W, 3) uint8 RGB, the full image;
+- ``camera``: its pycolmap.Camera;
+- ``name``: the image name relative to the image root (``sub/0001.jpg``).
+
+It returns ``None`` when it has no depth for that image (the image then gets plain SIFT).
+The returned map may have any resolution: :func:`resample_depth` brings it to the grid where
+normals are computed. Depth values are *z-depth* (distance along the optical axis, as in
+COLMAP's dense depth maps), not ray length.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import cv2
+import numpy as np
+import pycolmap
+
+DepthKind = Literal["metric", "depth", "disparity"]
+DEPTH_KINDS = ("metric", "depth", "disparity")
+
+
+@dataclass
+class DepthMap:
+    """A dense depth map of one image.
+
+    ``values`` (h, w) float32; invalid where 0, negative, NaN or inf. ``kind``:
+
+    - ``metric``: z-depth in metres;
+    - ``depth``: z-depth up to an unknown scale;
+    - ``disparity``: inverse z-depth up to an unknown scale AND shift (p = s / z + t).
+    """
+
+    values: np.ndarray
+    kind: DepthKind = "depth"
+
+    def __post_init__(self):
+        if self.kind not in DEPTH_KINDS:
+            raise ValueError(f"unknown depth kind {self.kind!r}, expected one of {DEPTH_KINDS}")
+        self.values = np.asarray(self.values, dtype=np.float32)
+        if self.values.ndim != 2:
+            raise ValueError(f"depth map must be 2-D, got shape {self.values.shape}")
+
+    def to_depth(self, shift: float = 0.0) -> np.ndarray:
+        """z-depth (up to scale), NaN where invalid. For disparity, z = 1 / (p - shift)."""
+        v = self.values.astype(np.float32)
+        if self.kind == "disparity":
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v = 1.0 / (v - np.float32(shift))
+        return np.where(np.isfinite(v) & (v > 0), v, np.nan).astype(np.float32)
+
+
+class DepthSource(Protocol):
+    def __call__(self, image: np.ndarray, camera: pycolmap.Camera, name: str
+                 ) -> DepthMap | None: ...
+
+
+def resample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resample a z-depth map (NaN = invalid) to width x height without mixing invalid pixels
+    into valid ones: area-average where downsampling, nearest where upsampling."""
+    h, w = depth.shape
+    if (w, h) == (width, height):
+        return depth.astype(np.float32)
+    valid = np.isfinite(depth)
+    if width <= w and height <= h:
+        filled = np.where(valid, depth, 0).astype(np.float32)
+        s = cv2.resize(filled, (width, height), interpolation=cv2.INTER_AREA)
+        c = cv2.resize(valid.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = s / c
+        out[c < 0.999] = np.nan  # any invalid pixel under the cell: unreliable
+        return out.astype(np.float32)
+    return cv2.resize(depth.astype(np.float32), (width, height),
+                      interpolation=cv2.INTER_NEAREST)
