@@ -72,6 +72,10 @@ class SiftConf:
     edge_threshold: float = 10.0
     max_num_orientations: int = 2
     upright: bool = False
+    max_image_size: int = 3200
+    """Images larger than this are downscaled for SIFT (COLMAP's default)."""
+    patch_first_octave: int = -1
+    """first_octave inside rectified patches (they are already enlarged: 0 costs 4x less)."""
 
 
 @dataclass

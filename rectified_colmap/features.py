@@ -61,3 +61,90 @@ class Features:
     def subset(self, index: np.ndarray) -> "Features":
         return Features(self.keypoints[index], self.shapes[index], self.descriptors[index],
                         self.patch[index])
+
+
+def similarity_frames(scales: np.ndarray, orientations: np.ndarray) -> np.ndarray:
+    """(N,) scales and orientations (rad) -> (N, 2, 2) frames s [[cos, -sin], [sin, cos]]."""
+    c, s = np.cos(orientations), np.sin(orientations)
+    return scales[:, None, None] * np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+_EXTRACTORS: dict[tuple, object] = {}
+
+
+def _extractor(conf: SiftConf, max_num_features: int, first_octave: int):
+    key = (conf.peak_threshold, conf.edge_threshold, conf.max_num_orientations, conf.upright,
+           int(max_num_features), int(first_octave))
+    if key not in _EXTRACTORS:
+        opts = pycolmap.FeatureExtractionOptions()
+        opts.num_threads = 1
+        sift = opts.sift
+        sift.max_num_features = int(max_num_features)
+        sift.first_octave = int(first_octave)
+        sift.peak_threshold = conf.peak_threshold
+        sift.edge_threshold = conf.edge_threshold
+        sift.max_num_orientations = conf.max_num_orientations
+        sift.upright = conf.upright
+        if len(_EXTRACTORS) > 32:
+            _EXTRACTORS.clear()
+        _EXTRACTORS[key] = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
+    return _EXTRACTORS[key]
+
+
+def detect_sift(image: np.ndarray, conf: SiftConf = SiftConf(),
+                max_num_features: int | None = None, first_octave: int | None = None
+                ) -> Features:
+    """COLMAP SIFT on a grayscale uint8 image (h, w); keypoints in that image's frame.
+
+    Images larger than ``conf.max_image_size`` are downscaled first, as COLMAP does, and the
+    keypoints scaled back. Returns Features with ``patch = -1``.
+    """
+    if image.ndim != 2 or image.dtype != np.uint8:
+        raise ValueError(f"SIFT needs a (h, w) uint8 image, got {image.shape} {image.dtype}")
+    n = conf.max_num_features if max_num_features is None else max_num_features
+    if n <= 0 or min(image.shape) < 16:
+        return Features.empty()
+    scale = 1.0
+    h, w = image.shape
+    if conf.max_image_size > 0 and max(h, w) > conf.max_image_size:
+        import cv2
+
+        scale = max(h, w) / conf.max_image_size
+        image = cv2.resize(image, (round(w / scale), round(h / scale)),
+                           interpolation=cv2.INTER_AREA)
+    ex = _extractor(conf, n, conf.first_octave if first_octave is None else first_octave)
+    kps, desc = ex.extract_from_uint8_array(np.ascontiguousarray(image))
+    if len(kps) == 0:
+        return Features.empty()
+    m = np.asarray(pycolmap.keypoints_to_matrix(kps), dtype=np.float64)  # x y scale ori
+    xy = m[:, :2] * scale  # COLMAP convention: rescaling is a plain multiplication
+    shapes = similarity_frames(m[:, 2] * scale, m[:, 3])
+    return Features(xy, shapes, np.ascontiguousarray(desc.data, dtype=np.uint8),
+                    np.full(len(m), -1, np.int32))
+
+
+def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray:
+    """Share a feature budget between regions in proportion to their areas (int array).
+
+    Regions with any area get at least ``minimum`` (when the budget allows)."""
+    areas = np.asarray(areas, dtype=np.float64)
+    if areas.sum() <= 0:
+        return np.zeros(len(areas), dtype=int)
+    share = total * areas / areas.sum()
+    share = np.where(areas > 0, np.maximum(share, min(minimum, total / max(len(areas), 1))), 0)
+    share *= total / share.sum()
+    return np.floor(share).astype(int)
+
+
+def keypoints_in_mask(xy: np.ndarray, mask: np.ndarray, image_size: tuple[int, int]
+                      ) -> np.ndarray:
+    """(N,) bool: COLMAP-convention points of an image of size (W, H) that fall on True
+    cells of ``mask`` (h, w), a grid covering that image (nearest cell)."""
+    W, H = image_size
+    h, w = mask.shape
+    col = np.floor(xy[:, 0] * (w / W)).astype(int)
+    row = np.floor(xy[:, 1] * (h / H)).astype(int)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    out = np.zeros(len(xy), dtype=bool)
+    out[inside] = mask[row[inside], col[inside]]
+    return out

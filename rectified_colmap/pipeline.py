@@ -1,0 +1,169 @@
+"""One image: depth -> normals -> planes -> rectified patches -> SIFT -> features.
+
+``extract_image(image, camera, depth, conf)`` is the whole method for a single image. It is
+pure (no I/O) and single-threaded, so callers may run it in worker processes.
+
+Guarantee: with no depth, or no usable plane, the output is exactly plain COLMAP SIFT with
+the same options (same call, same budget).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import pycolmap
+
+from . import camera as cam_utils
+from .config import ExtractConf
+from .depth import DepthMap, resample_depth
+from .features import Features, detect_sift, keypoints_in_mask, split_budget
+from .normals import backproject, estimate_normals
+from .planes import PlaneResult, detect_planes
+from .rectify import Rectification, plan_rectification, rectified_to_image, warp_to_rectified
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class ImageResult:
+    features: Features
+    planes: PlaneResult | None = None
+    rectifications: list[Rectification] = field(default_factory=list)
+    coverage: np.ndarray | None = None
+    """(h, w) int16 at work resolution: index of the rectification covering the cell, -1."""
+    normals: np.ndarray | None = None
+    """(h, w, 3) normals at work resolution (for visualisation)."""
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def work_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    """Grid size (w, h) for normals and plane labels: the image scaled to ``max_size``."""
+    s = min(1.0, max_size / max(width, height))
+    return max(8, round(width * s)), max(8, round(height * s))
+
+
+def depth_to_normals(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf,
+                     shift: float | None = None) -> np.ndarray:
+    """Depth of any resolution and kind -> normals (h, w, 3) on the work grid."""
+    w, h = work_size(camera.width, camera.height, conf.normals.work_max_size)
+    if depth.kind == "disparity" and shift is None:
+        shift = _disparity_shift(depth, camera, conf)
+    z = resample_depth(depth.to_depth(shift or 0.0), w, h)
+    points = backproject(z, cam_utils.grid_rays(camera, w, h))
+    return estimate_normals(points, conf.normals)
+
+
+def _disparity_shift(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf) -> float:
+    if conf.depth.disparity_shift == "zero":
+        return 0.0
+    from .depth.shift import estimate_shift  # needs normals and planes: import late
+
+    return float(estimate_shift(depth.values, camera, conf))
+
+
+def viewing_coverage(camera: pycolmap.Camera, rects: list[Rectification], patches,
+                     shape: tuple[int, int], max_viewing_angle_deg: float) -> np.ndarray:
+    """(h, w) int16: which rectification covers each work-grid cell (-1: none).
+
+    A cell is covered when it belongs to the rectification's patch and its viewing angle is
+    within the limit (cells beyond it are left to plain SIFT)."""
+    h, w = shape
+    rays = cam_utils.grid_rays(camera, w, h)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    cos_max = np.cos(np.deg2rad(max_viewing_angle_deg))
+    cover = np.full((h, w), -1, np.int16)
+    for i, rect in enumerate(rects):
+        ok = patches[rect.patch_index].mask & (-(rays @ rect.normal) >= cos_max)
+        cover[ok & (cover < 0)] = i
+    return cover
+
+
+def rectified_features(gray: np.ndarray, camera: pycolmap.Camera, rect: Rectification,
+                       index: int, budget: int, conf: ExtractConf) -> Features:
+    """SIFT inside one rectified patch, mapped back to the original image."""
+    patch_img = warp_to_rectified(gray, camera, rect)
+    feats = detect_sift(patch_img, conf.sift, budget, conf.sift.patch_first_octave)
+    if len(feats) == 0:
+        return feats
+    b = conf.rectify.border
+    valid = rect.mask.astype(np.uint8)
+    if b > 0:
+        valid = cv2.erode(valid, np.ones((2 * b + 1, 2 * b + 1), np.uint8),
+                          borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    keep = keypoints_in_mask(feats.keypoints, valid.astype(bool), rect.size)
+    feats = feats.subset(keep)
+    xy, J = rectified_to_image(camera, rect, feats.keypoints)
+    inside = (np.isfinite(xy).all(1) & (xy[:, 0] >= 0) & (xy[:, 1] >= 0)
+              & (xy[:, 0] <= camera.width) & (xy[:, 1] <= camera.height))
+    return Features(xy[inside], (J @ feats.shapes)[inside], feats.descriptors[inside],
+                    np.full(int(inside.sum()), index, np.int32))
+
+
+def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | None,
+                  conf: ExtractConf | None = None, rng: np.random.Generator | None = None,
+                  normals: np.ndarray | None = None) -> ImageResult:
+    """Rectified SIFT of one image.
+
+    image: (H, W) uint8 grayscale or (H, W, 3) uint8 RGB; camera: its pycolmap.Camera
+    (width/height must match the image); depth: any resolution, or None for plain SIFT.
+    ``normals`` (h, w, 3) on the work grid may be given instead of depth (e.g. ground truth).
+    """
+    conf = conf or ExtractConf()
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    H, W = gray.shape
+    if (W, H) != (camera.width, camera.height):
+        raise ValueError(f"image is {W}x{H} but its camera is {camera.width}x{camera.height}")
+    rng = rng if rng is not None else np.random.default_rng(0)
+    total = conf.sift.max_num_features
+    t = {}
+
+    if depth is None and normals is None:
+        return ImageResult(detect_sift(gray, conf.sift, total), timings=t)
+
+    t0 = time.perf_counter()
+    if normals is None:
+        normals = depth_to_normals(depth, camera, conf)
+    t["normals"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    planes = detect_planes(normals, conf.planes, rng)
+    t["planes"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    min_angle = np.deg2rad(conf.rectify.min_rectify_angle_deg)
+    rects = []
+    for i, patch in enumerate(planes.patches):
+        if np.arccos(np.clip(-patch.normal[2], -1, 1)) < min_angle:
+            continue  # nearly fronto-parallel already: plain SIFT does as well
+        rect = plan_rectification(camera, patch, i, conf.rectify)
+        if rect is not None:
+            rects.append(rect)
+    cover = viewing_coverage(camera, rects, planes.patches, normals.shape[:2],
+                             conf.rectify.max_viewing_angle_deg)
+    t["homographies"] = time.perf_counter() - t0
+    result = ImageResult(Features.empty(), planes, rects, cover, normals, t)
+    if not rects or not (cover >= 0).any():
+        result.features = detect_sift(gray, conf.sift, total)
+        return result
+
+    areas = np.bincount(cover.ravel() + 1, minlength=len(rects) + 1).astype(float)
+    budgets = split_budget(total, areas)
+
+    parts = []
+    t0 = time.perf_counter()
+    if budgets[0] > 0:
+        plain = detect_sift(gray, conf.sift, total)
+        parts.append(plain.subset(keypoints_in_mask(plain.keypoints, cover < 0, (W, H))))
+    t["sift_plain"] = time.perf_counter() - t0
+    t["warps+sift_patches"] = 0.0
+    for i, rect in enumerate(rects):
+        t0 = time.perf_counter()
+        parts.append(rectified_features(gray, camera, rect, rect.patch_index,
+                                        int(budgets[i + 1]), conf))
+        t["warps+sift_patches"] += time.perf_counter() - t0
+    result.features = Features.concatenate(parts)
+    return result
