@@ -104,21 +104,22 @@ def detect_sift(image: np.ndarray, conf: SiftConf = SiftConf(),
     n = conf.max_num_features if max_num_features is None else max_num_features
     if n <= 0 or min(image.shape) < 16:
         return Features.empty()
-    scale = 1.0
+    sx = sy = 1.0
     h, w = image.shape
     if conf.max_image_size > 0 and max(h, w) > conf.max_image_size:
         import cv2
 
-        scale = max(h, w) / conf.max_image_size
-        image = cv2.resize(image, (round(w / scale), round(h / scale)),
-                           interpolation=cv2.INTER_AREA)
+        s = conf.max_image_size / max(h, w)
+        nw, nh = max(1, round(w * s)), max(1, round(h * s))
+        image = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+        sx, sy = w / nw, h / nh
     ex = _extractor(conf, n, conf.first_octave if first_octave is None else first_octave)
     kps, desc = ex.extract_from_uint8_array(np.ascontiguousarray(image))
     if len(kps) == 0:
         return Features.empty()
     m = np.asarray(pycolmap.keypoints_to_matrix(kps), dtype=np.float64)  # x y scale ori
-    xy = m[:, :2] * scale  # COLMAP convention: rescaling is a plain multiplication
-    shapes = similarity_frames(m[:, 2] * scale, m[:, 3])
+    xy = m[:, :2] * [sx, sy]  # COLMAP convention: rescaling is a plain multiplication
+    shapes = similarity_frames(m[:, 2], m[:, 3]) * np.array([[sx], [sy]])
     return Features(xy, shapes, np.ascontiguousarray(desc.data, dtype=np.uint8),
                     np.full(len(m), -1, np.int32))
 

@@ -82,6 +82,23 @@ def viewing_coverage(camera: pycolmap.Camera, rects: list[Rectification], patche
     return cover
 
 
+def plain_features(gray: np.ndarray, region: np.ndarray, conf: ExtractConf,
+                   margin: int = 16) -> Features:
+    """Plain SIFT on the pixels of ``region`` (a grid covering the image), detected on the
+    region's bounding box only, with the budget scaled to that box."""
+    H, W = gray.shape
+    h, w = region.shape
+    rows, cols = np.flatnonzero(region.any(1)), np.flatnonzero(region.any(0))
+    x0 = max(0, int(np.floor(cols[0] * W / w)) - margin)
+    x1 = min(W, int(np.ceil((cols[-1] + 1) * W / w)) + margin)
+    y0 = max(0, int(np.floor(rows[0] * H / h)) - margin)
+    y1 = min(H, int(np.ceil((rows[-1] + 1) * H / h)) + margin)
+    n = round(conf.sift.max_num_features * (x1 - x0) * (y1 - y0) / (W * H))
+    feats = detect_sift(np.ascontiguousarray(gray[y0:y1, x0:x1]), conf.sift, n)
+    feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
+    return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
+
+
 def rectified_features(gray: np.ndarray, camera: pycolmap.Camera, rect: Rectification,
                        index: int, budget: int, conf: ExtractConf) -> Features:
     """SIFT inside one rectified patch, mapped back to the original image."""
@@ -156,8 +173,7 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     parts = []
     t0 = time.perf_counter()
     if budgets[0] > 0:
-        plain = detect_sift(gray, conf.sift, total)
-        parts.append(plain.subset(keypoints_in_mask(plain.keypoints, cover < 0, (W, H))))
+        parts.append(plain_features(gray, cover < 0, conf))
     t["sift_plain"] = time.perf_counter() - t0
     t["warps+sift_patches"] = 0.0
     for i, rect in enumerate(rects):

@@ -1,0 +1,48 @@
+import cv2
+import numpy as np
+import pytest
+
+from rectified_colmap import conventions
+from rectified_colmap.config import ExtractConf, confs
+
+
+def test_conf_from_dict_merges_and_rejects_unknown():
+    c = ExtractConf.from_dict({"rectify": {"max_viewing_angle_deg": 85}})
+    assert c.rectify.max_viewing_angle_deg == 85.0
+    assert c.normals.window == ExtractConf().normals.window
+    assert ExtractConf.from_dict(c.to_dict()) == c
+    with pytest.raises(KeyError):
+        ExtractConf.from_dict({"rectify": {"nope": 1}})
+    with pytest.raises(KeyError):
+        ExtractConf.from_dict({"nope": {}})
+    for name in confs:
+        ExtractConf.from_dict(confs[name])
+
+
+def test_pixel_centers():
+    g = conventions.pixel_centers(2, 1, 10, 4)
+    np.testing.assert_allclose(g[0, 0], [2.5, 2.0])
+    np.testing.assert_allclose(g[0, 1], [7.5, 2.0])
+
+
+def test_hloc_round_trip():
+    xy = np.array([[0.5, 0.5], [10.25, 3.0]])
+    h = conventions.to_hloc_keypoints(xy)
+    assert h.dtype == np.float32
+    np.testing.assert_allclose(h[0], [0, 0])
+    np.testing.assert_allclose(conventions.from_hloc_keypoints(h), xy)
+
+
+def test_opencv_homography_moves_pixels_as_in_colmap_frame():
+    # H doubles COLMAP coordinates: the centre of pixel (0, 0) at (0.5, 0.5) goes to (1, 1),
+    # which is the corner shared by pixels (0, 0) and (1, 1); the centre of pixel (3, 2),
+    # (3.5, 2.5), goes to (7, 5): the corner between pixels (6..7, 4..5).
+    H = np.diag([2.0, 2.0, 1.0])
+    img = np.zeros((8, 8), np.float32)
+    img[2, 3] = 1.0
+    out = cv2.warpPerspective(img, conventions.to_opencv_homography(H), (16, 16),
+                              flags=cv2.INTER_LINEAR)
+    ys, xs = np.nonzero(out > 0)
+    cx = (out[ys, xs] * xs).sum() / out[ys, xs].sum() + 0.5  # back to COLMAP
+    cy = (out[ys, xs] * ys).sum() / out[ys, xs].sum() + 0.5
+    np.testing.assert_allclose([cx, cy], [7.0, 5.0], atol=1e-6)
