@@ -24,6 +24,8 @@ class NormalConf:
     """A window whose (max-min)/min depth exceeds this is a discontinuity: no normal."""
     max_planarity: float = 0.02
     """Max ratio of the smallest to the middle eigenvalue of the window's scatter matrix."""
+    min_valid_frac: float = 0.9
+    """A window needs at least this fraction of valid depths (of its pixels inside the grid)."""
 
 
 @dataclass
@@ -43,6 +45,8 @@ class PlaneConf:
     """Normals further than this from every axis are outliers while fitting."""
     opening_radius: int = 1
     """Morphological opening of each label mask before components (pixels at work size)."""
+    min_normals: int = 100
+    """Fewer valid normals than this: no dominant directions (plain SIFT)."""
 
 
 @dataclass
@@ -82,8 +86,11 @@ class SiftConf:
 class DepthConf:
     """Where depth comes from and how disparity is turned into depth."""
 
-    disparity_shift: str = "zero"
-    """'zero' (t = 0) or 'orthogonal' (shift from two orthogonal dominant planes)."""
+    disparity_shift: str = "orthogonal"
+    """'zero' (t = 0) or 'orthogonal' (shift from two orthogonal dominant planes; falls back
+    to 0 without two planes). Only for disparity (affine-invariant) models. On rendered
+    streets with smooth 5% depth errors, 'orthogonal' keeps normal errors ~5.6 deg whatever
+    the true shift, 'zero' grows to 7.4 / 15.5 deg at shifts 0.3 / 1.0 x median(1/z)."""
 
 
 @dataclass

@@ -7,17 +7,30 @@ intrinsics K_v (COLMAP convention) chosen so that the patch fits in (w, h) pixel
 shrinks (median smaller singular value of the image->rectified Jacobian = 1) and the size
 is capped. For an undistorted camera with intrinsics K the image->rectified map is the
 homography H = K_v R K^-1; for other models warps go through the camera's own distortion.
+
+Shapes: patch masks (h, w) bool on the work grid covering the image; rectified images and
+masks (height, width); pixel coordinates (N, 2) in COLMAP convention in both the original
+and the rectified image (conversions to OpenCV only through rectified_colmap.conventions).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import pycolmap
 
+from . import camera as cam_utils
 from .config import RectifyConf
+from .conventions import OFFSET, to_opencv_homography, to_opencv_points
 from .planes import Patch
+
+logger = logging.getLogger(__name__)
+
+_MAX_FOCAL_SAMPLES = 20000
+"""Patch pixels used (at most) for the median Jacobian that sets the virtual focal."""
 
 
 @dataclass
@@ -38,30 +51,265 @@ class Rectification:
 
 def rectifying_rotation(normal: np.ndarray) -> np.ndarray:
     """Smallest rotation R with R @ (-normal) = (0, 0, 1)."""
-    raise NotImplementedError
+    a = -np.asarray(normal, dtype=np.float64).reshape(3)
+    na = np.linalg.norm(a)
+    if not np.isfinite(na) or na == 0:
+        raise ValueError(f"rectifying_rotation: invalid normal {normal}")
+    a = a / na
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(a, z)  # = (a_y, -a_x, 0)
+    s = np.linalg.norm(axis)
+    c = float(a @ z)
+    if s < 1e-12:
+        # a = +z: identity; a = -z: half turn about x (any axis in the image plane works).
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    axis /= s
+    angle = np.arctan2(s, c)
+    Kx = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]],
+                   [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * Kx + (1.0 - np.cos(angle)) * (Kx @ Kx)
 
 
 def image_to_rectified_homography(camera: pycolmap.Camera, rect: Rectification) -> np.ndarray:
     """H = K_v R K^-1 between COLMAP pixel frames (pinhole part of the camera only)."""
-    raise NotImplementedError
+    K = cam_utils.calibration_matrix(camera)
+    return rect.K @ rect.R @ np.linalg.inv(K)
+
+
+def _rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray,
+                                                                          np.ndarray]:
+    """Rays (N, 3) with z = 1 -> (virtual normalised coords (N, 2), d(virtual)/d(ray xy)
+    (N, 2, 2)) for the rotation R (virtual focal 1)."""
+    Xv = rays @ R.T
+    zi = 1.0 / Xv[:, 2]
+    u = Xv[:, :2] * zi[:, None]
+    # d(u_i)/d(m_j) = (R[i, j] - u_i R[2, j]) / Xv_z
+    J = (R[None, :2, :2] - u[:, :, None] * R[None, 2:3, :2]) * zi[:, None, None]
+    return u, J
+
+
+def _image_to_ray_jacobian(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
+    """d(ray xy)/d(image xy) (N, 2, 2): analytic for pinhole cameras, central differences
+    through the camera's undistortion otherwise."""
+    if cam_utils.is_pinhole(camera):
+        K = cam_utils.calibration_matrix(camera)
+        Ki = np.linalg.inv(K)[:2, :2]
+        return np.broadcast_to(Ki, (len(xy), 2, 2))
+    h = 1e-3
+    J = np.empty((len(xy), 2, 2))
+    for j in range(2):
+        d = np.zeros(2)
+        d[j] = h
+        J[:, :, j] = (cam_utils.image_to_rays(camera, xy + d)[:, :2]
+                      - cam_utils.image_to_rays(camera, xy - d)[:, :2]) / (2 * h)
+    return J
+
+
+def _min_singular_values(J: np.ndarray) -> np.ndarray:
+    """Smaller singular value of (N, 2, 2) matrices."""
+    a, b, c, d = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
+    p = a * a + c * c
+    r = b * b + d * d
+    q = a * b + c * d
+    lam = 0.5 * (p + r) - np.sqrt(0.25 * (p - r) ** 2 + q * q)
+    return np.sqrt(np.maximum(lam, 0.0))
+
+
+def _rectified_pixel_rays(rect: Rectification) -> np.ndarray:
+    """Rays (height, width, 3) of the original camera through the rectified pixel centres
+    (not normalised; z <= 0 for rays behind the original camera)."""
+    w, h = rect.size
+    A = rect.R.T @ np.linalg.inv(rect.K)  # homogeneous rectified pixel -> original ray
+    x = (np.arange(w) + OFFSET)[None, :]
+    y = (np.arange(h) + OFFSET)[:, None]
+    return np.stack([A[i, 0] * x + A[i, 1] * y + A[i, 2] for i in range(3)], -1)
+
+
+def _project(camera: pycolmap.Camera, X: np.ndarray) -> np.ndarray:
+    """Rays (..., 3) -> COLMAP pixels (..., 2); NaN behind the camera. Pinhole cameras in
+    closed form (fast for whole rectified grids), others through pycolmap."""
+    shape = X.shape[:-1]
+    X = X.reshape(-1, 3)
+    out = np.full((len(X), 2), np.nan)
+    front = X[:, 2] > 1e-12
+    if cam_utils.is_pinhole(camera):
+        K = cam_utils.calibration_matrix(camera)
+        zi = 1.0 / X[front, 2]
+        out[front, 0] = K[0, 0] * X[front, 0] * zi + K[0, 2]
+        out[front, 1] = K[1, 1] * X[front, 1] * zi + K[1, 2]
+    elif front.any():
+        out[front] = cam_utils.rays_to_image(camera, X[front])
+    return out.reshape(shape + (2,))
+
+
+def _rectified_mask(camera: pycolmap.Camera, rect: Rectification, patch_mask: np.ndarray,
+                    cos_max: float) -> np.ndarray:
+    """(height, width) bool: rectified pixels whose rays are in front of the camera, within
+    the viewing angle, inside the image and in the patch (nearest cell of the work grid)."""
+    w, h = rect.size
+    f, cx, cy = rect.K[0, 0], rect.K[0, 2], rect.K[1, 2]
+    # Viewing angle: -ray . n = cos of the angle of the virtual ray (u, v, 1) to +z.
+    u2 = (((np.arange(w) + OFFSET - cx) / f) ** 2)[None, :]
+    v2 = (((np.arange(h) + OFFSET - cy) / f) ** 2)[:, None]
+    ok = 1.0 + u2 + v2 <= 1.0 / cos_max ** 2
+    gh, gw = patch_mask.shape
+    A = rect.R.T @ np.linalg.inv(rect.K)  # homogeneous rectified pixel -> original ray
+    if cam_utils.is_pinhole(camera):
+        # Nearest lookup of the work-grid mask through the homography rectified -> grid.
+        x = (np.arange(w) + OFFSET)[None, :]
+        y = (np.arange(h) + OFFSET)[:, None]
+        ok &= A[2, 0] * x + A[2, 1] * y + A[2, 2] > 1e-12  # in front of the camera
+        S = np.diag([gw / camera.width, gh / camera.height, 1.0])
+        G = to_opencv_homography(S @ cam_utils.calibration_matrix(camera) @ A)
+        warped = cv2.warpPerspective(patch_mask.astype(np.uint8), G, (w, h),
+                                     flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return ok & (warped > 0)
+    X = _rectified_pixel_rays(rect)
+    ok &= X[..., 2] > 1e-12
+    idx = np.flatnonzero(ok)
+    xy = _project(camera, X.reshape(-1, 3)[idx])
+    with np.errstate(invalid="ignore"):
+        inside = ((xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] < camera.width)
+                  & (xy[:, 1] < camera.height))
+    idx, xy = idx[inside], xy[inside]
+    col = np.minimum((xy[:, 0] * (gw / camera.width)).astype(np.int64), gw - 1)
+    row = np.minimum((xy[:, 1] * (gh / camera.height)).astype(np.int64), gh - 1)
+    out = np.zeros(h * w, bool)
+    out[idx[patch_mask[row, col]]] = True
+    return out.reshape(h, w)
 
 
 def plan_rectification(camera: pycolmap.Camera, patch: Patch, patch_index: int,
                        conf: RectifyConf = RectifyConf()) -> Rectification | None:
     """Virtual camera, size and valid mask for one patch; None if nothing usable remains
-    (e.g. everything beyond the viewing-angle limit)."""
-    raise NotImplementedError
+    (e.g. everything beyond the viewing-angle limit).
+
+    The virtual focal f makes the median smaller singular value of the image->rectified
+    Jacobian over the patch 1 (nothing shrinks); the size is then capped by
+    conf.max_patch_side and by conf.max_patch_area_factor x the patch's area in original
+    pixels (the rectified area of the patch itself, not of its bounding box), scaling f down.
+    """
+    n = np.asarray(patch.normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    mask = np.asarray(patch.mask, bool)
+    gh, gw = mask.shape
+    rows, cols = np.nonzero(mask)
+    if len(rows) == 0:
+        return None
+    sx, sy = camera.width / gw, camera.height / gh
+    xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # = pixel_centers
+    rays = cam_utils.image_to_rays(camera, xy)
+    cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
+    cos_view = -(rays[:, 0] * n[0] + rays[:, 1] * n[1] + rays[:, 2] * n[2]) / np.sqrt(
+        rays[:, 0] ** 2 + rays[:, 1] ** 2 + rays[:, 2] ** 2)
+    keep = np.isfinite(cos_view) & (cos_view >= cos_max) & (cos_view > 0) & (rays[:, 2] > 0)
+    if not keep.any():
+        return None
+    xy, rays = xy[keep], rays[keep]
+    R = rectifying_rotation(n)
+    # Virtual normalised coordinates of every kept cell (component-wise: fast).
+    Xv = [R[i, 0] * rays[:, 0] + R[i, 1] * rays[:, 1] + R[i, 2] for i in range(3)]
+    u = np.stack([Xv[0] / Xv[2], Xv[1] / Xv[2]], 1)
+    # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
+    sel = np.linspace(0, len(xy) - 1, min(len(xy), _MAX_FOCAL_SAMPLES)).astype(np.int64)
+    _, Ju = _rays_to_rectified_jacobian(R, rays[sel])
+    J = Ju @ _image_to_ray_jacobian(camera, xy[sel])  # d(u)/d(image xy), f = 1
+    smin = _min_singular_values(J)
+    if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:
+        return None
+    f = 1.0 / np.nanmedian(smin)
+    # Margin of half a work cell around the cell centres, in virtual normalised units.
+    half = np.nanmax(0.5 * np.abs(J) @ np.array([sx, sy]), axis=0)
+    lo = u.min(0) - half
+    hi = u.max(0) + half
+    det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
+    content = np.nanmean(det) * len(xy) * sx * sy  # rectified patch area at f = 1
+    orig_area = len(xy) * sx * sy
+
+    def size_for(f):
+        return np.ceil((hi - lo) * f + 2 * conf.border).astype(np.int64)
+
+    size = size_for(f)
+    scale = 1.0
+    if size.max() > conf.max_patch_side:
+        scale = min(scale, (conf.max_patch_side - 2 * conf.border) / ((hi - lo).max() * f))
+    area_cap = conf.max_patch_area_factor * orig_area
+    if content * f * f > area_cap:
+        scale = min(scale, np.sqrt(area_cap / (content * f * f)))
+    if scale < 1.0:
+        f *= max(scale, 1e-9)
+        size = np.minimum(size_for(f), conf.max_patch_side)
+    size = np.maximum(size, 1)
+    cx, cy = conf.border - lo * f
+    K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    rect = Rectification(R=R, K=K, size=(int(size[0]), int(size[1])),
+                         mask=np.zeros((int(size[1]), int(size[0])), bool), normal=n,
+                         patch_index=patch_index)
+    rect.mask = _rectified_mask(camera, rect, mask, cos_max)
+    if not rect.mask.any():
+        return None
+    return rect
 
 
 def warp_to_rectified(image: np.ndarray, camera: pycolmap.Camera, rect: Rectification
                       ) -> np.ndarray:
     """Render the rectified patch (height, width[, C]) from the original image (bilinear);
     pixels outside rect.mask are 0."""
-    raise NotImplementedError
+    image = np.asarray(image)
+    if image.shape[:2] != (camera.height, camera.width):
+        raise ValueError(f"warp_to_rectified: image is {image.shape[1]}x{image.shape[0]} but "
+                         f"the camera is {camera.width}x{camera.height}")
+    w, h = rect.size
+    if cam_utils.is_pinhole(camera):
+        H = to_opencv_homography(image_to_rectified_homography(camera, rect))
+        out = cv2.warpPerspective(image, H, (w, h), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    else:
+        if max(w, h) >= 32767:
+            raise ValueError(f"rectified patch {w}x{h} too large for cv2.remap")
+        # Only the pixels of the mask need the camera's (slow) distortion model.
+        maps = np.full((h, w, 2), -10.0, np.float32)
+        X = _rectified_pixel_rays(rect)[rect.mask]
+        xy = to_opencv_points(_project(camera, X))
+        maps[rect.mask] = np.where(np.isfinite(xy), xy, -10.0)
+        out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    # Also removes rays behind the source camera, which warpPerspective mirrors.
+    out[~rect.mask] = 0
+    return out
 
 
 def rectified_to_image(camera: pycolmap.Camera, rect: Rectification, xy: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) rectified COLMAP pixel coords -> ((N, 2) original image COLMAP pixel coords,
-    (N, 2, 2) Jacobians d(image xy)/d(rectified xy))."""
-    raise NotImplementedError
+    (N, 2, 2) Jacobians d(image xy)/d(rectified xy)).
+
+    Points whose rays lie behind the original camera map to NaN (and NaN Jacobians). The
+    Jacobian is analytic through the rotation and the pinhole part; distortion is composed
+    as a central-difference Jacobian of the camera's projection.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    A = rect.R.T @ np.linalg.inv(rect.K)  # rectified homogeneous pixel -> original ray
+    X = xy @ A[:, :2].T + A[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        front = X[:, 2] > 1e-12
+        zi = np.where(front, 1.0 / X[:, 2], np.nan)
+    m = X[:, :2] * zi[:, None]
+    # d(m_i)/d(p_j) = (A[i, j] - m_i A[2, j]) / X_z
+    Jm = (A[None, :2, :2] - m[:, :, None] * A[None, 2:3, :2]) * zi[:, None, None]
+    out = np.full((len(xy), 2), np.nan)
+    Jp = np.full((len(xy), 2, 2), np.nan)
+    if front.any():
+        rays = np.concatenate([m[front], np.ones((int(front.sum()), 1))], 1)
+        out[front] = cam_utils.rays_to_image(camera, rays)
+        if cam_utils.is_pinhole(camera):
+            Jp[front] = cam_utils.calibration_matrix(camera)[:2, :2]
+        else:
+            h = 1e-6
+            for j in range(2):
+                d = np.zeros(3)
+                d[j] = h
+                Jp[front, :, j] = (cam_utils.rays_to_image(camera, rays + d)
+                                   - cam_utils.rays_to_image(camera, rays - d)) / (2 * h)
+    return out, Jp @ Jm

@@ -1,0 +1,230 @@
+import cv2
+import numpy as np
+import pytest
+
+from rectified_colmap import camera as cam_utils
+from rectified_colmap.camera import make_camera, rays_to_image
+from rectified_colmap.config import RectifyConf
+from rectified_colmap.planes import Patch
+from rectified_colmap.rectify import (Rectification, image_to_rectified_homography,
+                                      plan_rectification, rectified_to_image,
+                                      rectifying_rotation, warp_to_rectified)
+
+W, H = 240, 160
+GW, GH = 120, 80  # work grid
+CAMERAS = {
+    "PINHOLE": ("PINHOLE", [200.0, 190.0, 121.0, 79.0]),
+    "SIMPLE_RADIAL": ("SIMPLE_RADIAL", [200.0, 120.0, 80.0, -0.08]),
+    "OPENCV": ("OPENCV", [200.0, 195.0, 118.0, 82.0, 0.05, -0.02, 0.002, -0.001]),
+}
+
+
+def camera(name):
+    model, params = CAMERAS[name]
+    return make_camera(model, params, W, H)
+
+
+def unit(v):
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def plane_basis(n):
+    e1 = unit(np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.99 else np.cross(n, [1.0, 0, 0]))
+    return e1, np.cross(n, e1)
+
+
+def full_patch(n, mask=None):
+    mask = np.ones((GH, GW), bool) if mask is None else mask
+    return Patch(mask, 0, unit(n), float(mask.mean()))
+
+
+NORMALS = [[0.5, -0.2, -0.8], [0.0, -0.9, -0.45], [-0.7, 0.1, -0.6]]
+
+
+def test_rectifying_rotation_properties():
+    rng = np.random.default_rng(0)
+    ns = [rng.normal(size=3) for _ in range(50)]
+    ns += [[0, 0, -1.0], [0, 0, 1.0], [1e-13, 0, 1.0], [1e-9, -1e-9, 1.0], [1.0, 0, 0]]
+    for n in ns:
+        n = unit(n)
+        R = rectifying_rotation(n)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(R @ -n, [0, 0, 1.0], atol=1e-9)
+        # Smallest rotation: its angle is the angle between -n and z.
+        angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+        assert angle == pytest.approx(np.arccos(np.clip(-n[2], -1, 1)), abs=1e-6)
+    np.testing.assert_allclose(rectifying_rotation([0, 0, -1.0]), np.eye(3), atol=1e-15)
+
+
+@pytest.mark.parametrize("n", NORMALS)
+def test_homography_makes_plane_fronto_parallel(n):
+    cam = camera("PINHOLE")
+    n = unit(n)
+    rect = plan_rectification(cam, full_patch(n), 0)
+    assert rect is not None
+    e1, e2 = plane_basis(n)
+    g = np.stack(np.meshgrid(np.linspace(-1, 1, 7), np.linspace(-1, 1, 7)), -1).reshape(-1, 2)
+    X = -4.0 * n + g[:, :1] * e1 + g[:, 1:] * e2
+    xy = rays_to_image(cam, X)
+    Hm = image_to_rectified_homography(cam, rect)
+    q = np.c_[xy, np.ones(len(xy))] @ Hm.T
+    q = q[:, :2] / q[:, 2:]
+    # q is a similarity of the plane coordinates g: q = s Rot g + t.
+    A = np.c_[g, np.ones(len(g))]
+    M = np.linalg.lstsq(A, q, rcond=None)[0]
+    assert np.abs(A @ M - q).max() < 1e-6
+    L = M[:2]
+    G = L.T @ L  # a similarity: orthogonal columns of equal length
+    np.testing.assert_allclose(G, np.eye(2) * G[0, 0], atol=1e-6 * np.abs(L).max() ** 2)
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
+def test_round_trips_and_direct_projection(name):
+    cam = camera(name)
+    n = unit(NORMALS[0])
+    rect = plan_rectification(cam, full_patch(n), 0)
+    e1, e2 = plane_basis(n)
+    rng = np.random.default_rng(1)
+    g = rng.uniform(-1, 1, (200, 2))
+    X = -5.0 * n + g[:, :1] * e1 + g[:, 1:] * e2
+    xy = rays_to_image(cam, X)
+    ok = (xy > 0).all(1) & (xy[:, 0] < W) & (xy[:, 1] < H)
+    X, xy = X[ok], xy[ok]
+    # Direct projection of the 3D points into the virtual camera.
+    Xv = X @ rect.R.T @ rect.K.T
+    q = Xv[:, :2] / Xv[:, 2:]
+    back, _ = rectified_to_image(cam, rect, q)
+    assert np.abs(back - xy).max() < 0.1
+    assert np.abs(back - xy).max() < 1e-6  # in fact exact
+    # image -> rectified -> image through the pinhole part when the camera is pinhole.
+    if cam_utils.is_pinhole(cam):
+        Hm = image_to_rectified_homography(cam, rect)
+        p = np.c_[xy, np.ones(len(xy))] @ Hm.T
+        np.testing.assert_allclose(p[:, :2] / p[:, 2:], q, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
+def test_jacobian_matches_central_differences(name):
+    cam = camera(name)
+    rect = plan_rectification(cam, full_patch(NORMALS[1]), 0)
+    w, h = rect.size
+    rng = np.random.default_rng(2)
+    q = np.stack(np.nonzero(rect.mask)[::-1], 1)[rng.choice(rect.mask.sum(), 100)] + 0.5
+    xy, J = rectified_to_image(cam, rect, q)
+    assert np.isfinite(J).all()
+    eps = 1e-3
+    Jn = np.empty_like(J)
+    for j in range(2):
+        d = np.zeros(2)
+        d[j] = eps
+        Jn[:, :, j] = (rectified_to_image(cam, rect, q + d)[0]
+                       - rectified_to_image(cam, rect, q - d)[0]) / (2 * eps)
+    rel = np.abs(Jn - J).max((1, 2)) / np.abs(J).max((1, 2))
+    assert rel.max() < 1e-5
+
+
+def test_plan_nothing_shrinks_and_caps():
+    cam = camera("PINHOLE")
+    n = unit(NORMALS[1])  # ground-like, strongly foreshortened
+    big = RectifyConf(max_patch_area_factor=100.0, max_patch_side=10000, border=4)
+    rect = plan_rectification(cam, full_patch(n), 3, big)
+    assert rect.patch_index == 3 and rect.mask.shape == rect.size[::-1]
+    # Median smaller singular value of d(rectified)/d(image) over the patch is 1.
+    rows, cols = np.nonzero(np.ones((GH, GW), bool))
+    xy = np.stack([(cols + 0.5) * W / GW, (rows + 0.5) * H / GH], 1)
+    rays = cam_utils.image_to_rays(cam, xy)
+    xy = xy[-(rays @ n) / np.linalg.norm(rays, axis=1) >= np.cos(np.deg2rad(80))]
+    Hm = image_to_rectified_homography(cam, rect)
+    q = np.c_[xy, np.ones(len(xy))] @ Hm.T
+    q = q[:, :2] / q[:, 2:]
+    _, J = rectified_to_image(cam, rect, q)
+    smin = 1.0 / np.linalg.svd(J, compute_uv=False)[:, 0]
+    assert np.median(smin) == pytest.approx(1.0, rel=1e-3)
+    # Every patch cell is inside the rectified image, with the border margin.
+    assert q.min() >= 4 - 1e-6 and (q.max(0) <= np.array(rect.size) - 4 + 1e-6).all()
+    # Side cap and area cap.
+    capped = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_side=100,
+                                                                   max_patch_area_factor=100))
+    assert max(capped.size) <= 100 and capped.K[0, 0] < rect.K[0, 0]
+    area = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_area_factor=0.5))
+    assert area.mask.sum() <= 0.5 * W * H * 1.05
+
+
+def test_mask_excludes_grazing_rays_and_none_when_nothing_left():
+    cam = camera("PINHOLE")
+    n = unit([0.0, -1.0, -0.15])  # ground seen at grazing angles
+    conf = RectifyConf(max_viewing_angle_deg=60, max_patch_area_factor=100,
+                       max_patch_side=4000)
+    rect = plan_rectification(cam, full_patch(n), 0, conf)
+    q = np.stack(np.nonzero(rect.mask)[::-1], 1) + 0.5
+    xy, _ = rectified_to_image(cam, rect, q)
+    rays = cam_utils.image_to_rays(cam, xy)
+    cosv = -(rays @ n) / np.linalg.norm(rays, axis=1)
+    assert cosv.min() >= np.cos(np.deg2rad(60)) - 1e-9
+    # ...while the image has plenty of pixels beyond 60 degrees.
+    all_rays = cam_utils.grid_rays(cam, GW, GH).reshape(-1, 3)
+    assert (-(all_rays @ n) / np.linalg.norm(all_rays, axis=1) < np.cos(np.deg2rad(60))).mean() > 0.2
+    # Everything beyond the limit: nothing usable.
+    assert plan_rectification(cam, full_patch(n), 0, RectifyConf(max_viewing_angle_deg=20)) is None
+
+
+def test_warp_masks_rays_behind_camera():
+    cam = camera("PINHOLE")
+    n = unit([-1.0, 0.0, -0.05])  # a wall almost parallel to the optical axis
+    R = rectifying_rotation(n)
+    f = 100.0
+    K = np.array([[f, 0, 300.0], [0, f, 150.0], [0, 0, 1]])
+    rect = Rectification(R, K, (600, 300), np.ones((300, 600), bool), n, 0)
+    from rectified_colmap.rectify import _rectified_mask, _rectified_pixel_rays
+    X = _rectified_pixel_rays(rect)
+    behind = X[..., 2] <= 0
+    assert behind.mean() > 0.1
+    rect.mask = _rectified_mask(cam, rect, np.ones((GH, GW), bool), np.cos(np.deg2rad(89.9)))
+    assert not (rect.mask & behind).any() and rect.mask.any()
+    img = np.full((H, W), 200, np.uint8)
+    # Plain warpPerspective mirrors content into the rays behind the camera...
+    from rectified_colmap.conventions import to_opencv_homography
+    Hcv = to_opencv_homography(image_to_rectified_homography(cam, rect))
+    raw = cv2.warpPerspective(img, Hcv, rect.size)
+    assert (raw[behind] > 0).any()
+    # ...warp_to_rectified does not.
+    out = warp_to_rectified(img, cam, rect)
+    assert (out[behind] == 0).all() and (out[rect.mask] > 0).mean() > 0.95
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
+def test_warp_samples_the_right_pixels(name):
+    """Bilinear warping of a linear ramp is exact: the rectified value must equal the ramp
+    at rectified_to_image of the pixel centre (checks every pixel convention)."""
+    cam = camera(name)
+    mask = np.zeros((GH, GW), bool)
+    mask[10:70, 20:100] = True
+    rect = plan_rectification(cam, full_patch(NORMALS[2], mask), 0)
+    a, b, c = 0.7, -0.4, 120.0
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5  # COLMAP centres
+    img = (a * xs + b * ys + c).astype(np.float32)
+    out = warp_to_rectified(img, cam, rect)
+    assert out.shape == rect.mask.shape and (out[~rect.mask] == 0).all()
+    # Interior pixels (bilinear support inside the image).
+    q = np.stack(np.nonzero(rect.mask)[::-1], 1) + 0.5
+    xy, _ = rectified_to_image(cam, rect, q)
+    inner = (xy[:, 0] > 1) & (xy[:, 1] > 1) & (xy[:, 0] < W - 1) & (xy[:, 1] < H - 1)
+    assert inner.mean() > 0.9
+    expect = a * xy[inner, 0] + b * xy[inner, 1] + c
+    got = out[rect.mask][inner]
+    tol = 1e-3 if cam_utils.is_pinhole(cam) else 0.02  # remap maps are float32
+    assert np.abs(got - expect).max() < tol
+    # The rectified mask covers the patch: its cells map into the rectified image.
+    assert rect.mask.sum() > 0.5 * mask.sum() * (W / GW) * (H / GH) * 0.3
+
+
+def test_warp_color_and_bad_size():
+    cam = camera("PINHOLE")
+    rect = plan_rectification(cam, full_patch(NORMALS[0]), 0)
+    img = np.random.default_rng(0).integers(0, 255, (H, W, 3), dtype=np.uint8)
+    out = warp_to_rectified(img, cam, rect)
+    assert out.shape == rect.mask.shape + (3,) and out.dtype == np.uint8
+    with pytest.raises(ValueError, match="camera"):
+        warp_to_rectified(img[:10], cam, rect)
