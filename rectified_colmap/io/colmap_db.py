@@ -1,0 +1,372 @@
+"""COLMAP database writer: cameras, images and features, one transaction per image.
+
+Schema. A new database gets the layout that COLMAP 3.8 creates, extended the way COLMAP/
+pycolmap 4.x migrates such a database when it opens it: ``descriptors.type INTEGER NOT NULL
+DEFAULT 0`` (0 = SIFT), ``two_view_geometries.camera1/camera2`` and the empty 4.x tables
+(rigs, rig_sensors, frames, frame_data, pose_priors). COLMAP 3.8 reads and writes it (its
+``images`` table keeps the ``prior_q*/prior_t*`` columns it selects with ``SELECT *``, the
+extra columns have defaults), and pycolmap 4.2.1 opens it without any change. Databases
+made by either version are opened as they are and never migrated here: every statement
+names its columns, ``type`` is written only where the column exists.
+
+Rigs and frames. pycolmap 4.x accepts a database with no rig/frame rows (it makes one rig
+per camera and one frame per image when loading) or with rows for every image, never a
+mix. We write rig/frame rows for new images if and only if the database already uses them
+(it has frames, or rigs but no images yet).
+
+Data written per image (all in COLMAP conventions, see rectified_colmap.features):
+- keypoints: (N, 6) float32 [x, y, a11, a12, a21, a22], centre of the top-left pixel at
+  (0.5, 0.5);
+- descriptors: (N, 128) uint8 RootSIFT at COLMAP's byte scale (L2 norm ~512), type SIFT.
+
+Crash safety: every public write is one SQLite transaction that is committed before the
+call returns, so a kill -9 leaves a valid database holding every image completed so far.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ..features import Features
+
+logger = logging.getLogger(__name__)
+
+MAX_IMAGE_ID = 2147483647
+"""COLMAP's pair-id base: image ids are in [1, MAX_IMAGE_ID)."""
+SIFT_TYPE = 0
+"""descriptors.type of SIFT (FeatureExtractorType.SIFT)."""
+CAMERA_SENSOR = 0
+"""SensorType.CAMERA in rigs/frame_data."""
+MAX_COLMAP38_MODEL = 10
+"""Camera model ids 0..10 (SIMPLE_PINHOLE..THIN_PRISM_FISHEYE) mean the same in 3.8 and 4.x."""
+SCHEMA_VERSION = 3800
+"""user_version of a new database (COLMAP 3.8's; 4.x bumps it when it opens the file)."""
+
+# COLMAP 3.8's tables, with the columns 4.x adds when it migrates such a database.
+_SCHEMA = [
+    """CREATE TABLE IF NOT EXISTS cameras (
+        camera_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL,
+        model INTEGER NOT NULL, width INTEGER NOT NULL, height INTEGER NOT NULL,
+        params BLOB, prior_focal_length INTEGER NOT NULL)""",
+    """CREATE TABLE IF NOT EXISTS images (
+        image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL,
+        name TEXT NOT NULL UNIQUE, camera_id INTEGER NOT NULL,
+        prior_qw REAL, prior_qx REAL, prior_qy REAL, prior_qz REAL,
+        prior_tx REAL, prior_ty REAL, prior_tz REAL,
+        CONSTRAINT image_id_check CHECK(image_id >= 0 and image_id < 2147483647),
+        FOREIGN KEY(camera_id) REFERENCES cameras(camera_id))""",
+    "CREATE UNIQUE INDEX IF NOT EXISTS index_name ON images(name)",
+    """CREATE TABLE IF NOT EXISTS keypoints (
+        image_id INTEGER PRIMARY KEY NOT NULL,
+        rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB,
+        FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)""",
+    """CREATE TABLE IF NOT EXISTS descriptors (
+        image_id INTEGER PRIMARY KEY NOT NULL,
+        rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB,
+        type INTEGER NOT NULL DEFAULT 0,
+        FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)""",
+    """CREATE TABLE IF NOT EXISTS matches (
+        pair_id INTEGER PRIMARY KEY NOT NULL,
+        rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB)""",
+    """CREATE TABLE IF NOT EXISTS two_view_geometries (
+        pair_id INTEGER PRIMARY KEY NOT NULL,
+        rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB,
+        config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB,
+        camera1 BLOB, camera2 BLOB)""",
+    # COLMAP 4.x tables (left empty unless the caller's database uses rigs/frames).
+    """CREATE TABLE IF NOT EXISTS rigs (
+        rig_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL,
+        ref_sensor_id INTEGER NOT NULL, ref_sensor_type INTEGER NOT NULL)""",
+    """CREATE UNIQUE INDEX IF NOT EXISTS rig_ref_sensor_assignment ON
+        rigs(ref_sensor_id, ref_sensor_type)""",
+    """CREATE TABLE IF NOT EXISTS rig_sensors (
+        rig_id INTEGER NOT NULL, sensor_id INTEGER NOT NULL, sensor_type INTEGER NOT NULL,
+        sensor_from_rig BLOB,
+        FOREIGN KEY(rig_id) REFERENCES rigs(rig_id) ON DELETE CASCADE)""",
+    """CREATE UNIQUE INDEX IF NOT EXISTS rig_sensor_assignment ON
+        rig_sensors(sensor_id, sensor_type)""",
+    """CREATE TABLE IF NOT EXISTS frames (
+        frame_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, rig_id INTEGER NOT NULL,
+        FOREIGN KEY(rig_id) REFERENCES rigs(rig_id) ON DELETE CASCADE)""",
+    """CREATE TABLE IF NOT EXISTS frame_data (
+        frame_id INTEGER NOT NULL, data_id INTEGER NOT NULL,
+        sensor_id INTEGER NOT NULL, sensor_type INTEGER NOT NULL,
+        FOREIGN KEY(frame_id) REFERENCES frames(frame_id) ON DELETE CASCADE)""",
+    """CREATE UNIQUE INDEX IF NOT EXISTS frame_sensor_assignment ON
+        frame_data(data_id, sensor_type)""",
+    """CREATE TABLE IF NOT EXISTS pose_priors (
+        pose_prior_id INTEGER PRIMARY KEY NOT NULL,
+        corr_data_id INTEGER NOT NULL, corr_sensor_id INTEGER NOT NULL,
+        corr_sensor_type INTEGER NOT NULL, position BLOB, position_covariance BLOB,
+        gravity BLOB, coordinate_system INTEGER NOT NULL)""",
+    """CREATE UNIQUE INDEX IF NOT EXISTS pose_prior_data_assignment ON
+        pose_priors(corr_data_id, corr_sensor_id, corr_sensor_type)""",
+]
+_REQUIRED = {
+    "cameras": {"camera_id", "model", "width", "height", "params", "prior_focal_length"},
+    "images": {"image_id", "name", "camera_id"},
+    "keypoints": {"image_id", "rows", "cols", "data"},
+    "descriptors": {"image_id", "rows", "cols", "data"},
+}
+
+
+def image_ids_to_pair_id(image_id1: int, image_id2: int) -> int:
+    """COLMAP's pair id (order-independent)."""
+    a, b = sorted((int(image_id1), int(image_id2)))
+    return a * MAX_IMAGE_ID + b
+
+
+def create_database(path: Path) -> None:
+    """Create a new, empty database with the layout described in the module docstring."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path}: already exists")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".creating")
+    tmp.unlink(missing_ok=True)
+    con = sqlite3.connect(tmp, isolation_level=None)
+    try:
+        con.execute("BEGIN")
+        for sql in _SCHEMA:
+            con.execute(sql)
+        con.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+        con.execute("COMMIT")
+    finally:
+        con.close()
+    tmp.replace(path)  # atomic: a kill never leaves a half-created schema behind
+
+
+class ColmapDatabase:
+    """A COLMAP database opened for adding cameras, images and features.
+
+    ``ColmapDatabase(path)`` creates the database if it does not exist, otherwise opens it
+    as it is (made by COLMAP 3.8, 4.x, pycolmap or us). Use as a context manager or call
+    :meth:`close`. Every method commits before it returns.
+    """
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        if not self.path.exists():
+            create_database(self.path)
+            logger.info("created COLMAP database %s", self.path)
+        try:
+            self._con = sqlite3.connect(self.path, isolation_level=None, timeout=60.0)
+            tables = {r[0] for r in self._con.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+        except sqlite3.DatabaseError as e:
+            raise ValueError(f"{self.path}: not a valid SQLite/COLMAP database ({e})") from e
+        self._columns = {t: {r[1] for r in self._con.execute(f"PRAGMA table_info({t})")}
+                         for t in tables}
+        for table, cols in _REQUIRED.items():
+            missing = cols - self._columns.get(table, set())
+            if missing:
+                self._con.close()
+                raise ValueError(f"{self.path}: not a COLMAP database (table {table!r} "
+                                 f"lacks {sorted(missing)})")
+        self._has_type = "type" in self._columns["descriptors"]
+        self._has_frames = {"rigs", "frames", "frame_data"} <= tables
+
+    # -- context manager ----------------------------------------------------------------
+    def __enter__(self) -> "ColmapDatabase":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if getattr(self, "_con", None) is not None:
+            self._con.close()
+            self._con = None
+
+    def _one(self, sql: str, args=()):
+        return self._con.execute(sql, args).fetchone()
+
+    def _transaction(self):
+        return _Transaction(self._con)
+
+    # -- cameras --------------------------------------------------------------------------
+    def add_camera(self, camera: pycolmap.Camera, prior_focal_length: bool) -> int:
+        """Insert a camera (its camera_id is ignored) and return the new camera_id."""
+        model = int(camera.model.value)
+        params = np.asarray(camera.params, dtype=np.float64)
+        if not camera.verify_params() or not np.isfinite(params).all():
+            raise ValueError(f"{self.path}: invalid {camera.model.name} parameters {params}")
+        if model > MAX_COLMAP38_MODEL:
+            logger.warning("%s: camera model %s is unknown to COLMAP 3.8", self.path,
+                           camera.model.name)
+        with self._transaction():
+            cur = self._con.execute(
+                "INSERT INTO cameras(model, width, height, params, prior_focal_length) "
+                "VALUES(?, ?, ?, ?, ?)",
+                (model, int(camera.width), int(camera.height), params.tobytes(),
+                 int(bool(prior_focal_length))))
+        return int(cur.lastrowid)
+
+    def find_camera(self, camera: pycolmap.Camera, prior_focal_length: bool) -> int | None:
+        """Id of a camera row identical to ``camera`` (model, size, params, prior), or None:
+        lets a resumed single-camera run reuse its camera."""
+        params = np.asarray(camera.params, dtype=np.float64).tobytes()
+        row = self._one("SELECT camera_id FROM cameras WHERE model = ? AND width = ? AND "
+                        "height = ? AND params = ? AND prior_focal_length = ? "
+                        "ORDER BY camera_id LIMIT 1",
+                        (int(camera.model.value), int(camera.width), int(camera.height),
+                         params, int(bool(prior_focal_length))))
+        return None if row is None else int(row[0])
+
+    def get_camera(self, camera_id: int) -> pycolmap.Camera:
+        row = self._one("SELECT model, width, height, params, prior_focal_length FROM cameras"
+                        " WHERE camera_id = ?", (int(camera_id),))
+        if row is None:
+            raise KeyError(f"{self.path}: no camera with id {camera_id}")
+        model, width, height, params, prior = row
+        cam = pycolmap.Camera(model=pycolmap.CameraModelId(model), width=width, height=height,
+                              params=np.frombuffer(params, dtype=np.float64).copy())
+        cam.camera_id = int(camera_id)
+        cam.has_prior_focal_length = bool(prior)
+        return cam
+
+    def camera_ids(self) -> list[int]:
+        return [r[0] for r in self._con.execute("SELECT camera_id FROM cameras ORDER BY 1")]
+
+    # -- images ---------------------------------------------------------------------------
+    def find_image(self, name: str) -> tuple[int, int] | None:
+        """(image_id, camera_id) of the image called ``name``, or None."""
+        row = self._one("SELECT image_id, camera_id FROM images WHERE name = ?", (name,))
+        return None if row is None else (int(row[0]), int(row[1]))
+
+    def uses_frames(self) -> bool:
+        """Whether new images need rig/frame rows (see the module docstring)."""
+        if not self._has_frames:
+            return False
+        if self._one("SELECT 1 FROM frames LIMIT 1") is not None:
+            return True
+        return (self._one("SELECT 1 FROM images LIMIT 1") is None
+                and self._one("SELECT 1 FROM rigs LIMIT 1") is not None)
+
+    def add_image(self, name: str, camera_id: int) -> int:
+        """Insert an image (and its rig/frame rows where the database uses them)."""
+        if not name or name.startswith("/") or "\\" in name:
+            raise ValueError(f"{self.path}: image name {name!r} must be a relative path "
+                             "with '/' separators")
+        if self._one("SELECT 1 FROM cameras WHERE camera_id = ?", (int(camera_id),)) is None:
+            raise KeyError(f"{self.path}: image {name!r}: no camera with id {camera_id}")
+        with self._transaction():
+            frames = self.uses_frames()
+            try:
+                cur = self._con.execute("INSERT INTO images(name, camera_id) VALUES(?, ?)",
+                                        (name, int(camera_id)))
+            except sqlite3.IntegrityError as e:
+                raise ValueError(f"{self.path}: cannot add image {name!r} ({e})") from e
+            image_id = int(cur.lastrowid)
+            if frames:
+                row = self._one("SELECT rig_id FROM rigs WHERE ref_sensor_id = ? AND "
+                                "ref_sensor_type = ?", (int(camera_id), CAMERA_SENSOR))
+                if row is None:
+                    row = self._one("SELECT rig_id FROM rig_sensors WHERE sensor_id = ? AND "
+                                    "sensor_type = ?", (int(camera_id), CAMERA_SENSOR))
+                if row is None:
+                    rig_id = self._con.execute(
+                        "INSERT INTO rigs(ref_sensor_id, ref_sensor_type) VALUES(?, ?)",
+                        (int(camera_id), CAMERA_SENSOR)).lastrowid
+                else:
+                    rig_id = row[0]
+                frame_id = self._con.execute("INSERT INTO frames(rig_id) VALUES(?)",
+                                             (rig_id,)).lastrowid
+                self._con.execute("INSERT INTO frame_data(frame_id, data_id, sensor_id, "
+                                  "sensor_type) VALUES(?, ?, ?, ?)",
+                                  (frame_id, image_id, int(camera_id), CAMERA_SENSOR))
+        return image_id
+
+    def image_names(self) -> dict[int, str]:
+        return dict(self._con.execute("SELECT image_id, name FROM images"))
+
+    # -- features -------------------------------------------------------------------------
+    def has_features(self, image_id: int) -> bool:
+        return self._one("SELECT 1 FROM keypoints k JOIN descriptors d USING(image_id) "
+                         "WHERE image_id = ?", (int(image_id),)) is not None
+
+    def image_ids_with_features(self) -> set[int]:
+        return {r[0] for r in self._con.execute(
+            "SELECT image_id FROM keypoints JOIN descriptors USING(image_id)")}
+
+    def write_features(self, image_id: int, features: Features, overwrite: bool = False
+                       ) -> None:
+        """Keypoints (N x 6) and SIFT descriptors (N x 128 uint8) of one image, in one
+        transaction. With ``overwrite``, existing features are replaced and the matches and
+        two-view geometries of the image (indices into the old keypoints) are deleted."""
+        image_id = int(image_id)
+        kp = np.ascontiguousarray(features.colmap_keypoints(), dtype=np.float32)
+        desc = features.descriptors
+        if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != 128:
+            raise ValueError(f"{self.path}: image {image_id}: descriptors must be uint8 "
+                             f"(N, 128), got {desc.dtype} {desc.shape}")
+        if len(desc) != len(kp):
+            raise ValueError(f"{self.path}: image {image_id}: {len(kp)} keypoints but "
+                             f"{len(desc)} descriptors")
+        if not np.isfinite(kp).all():
+            raise ValueError(f"{self.path}: image {image_id}: non-finite keypoints")
+        desc = np.ascontiguousarray(desc)
+        with self._transaction():
+            if self._one("SELECT 1 FROM images WHERE image_id = ?", (image_id,)) is None:
+                raise KeyError(f"{self.path}: no image with id {image_id}")
+            exists = (self._one("SELECT 1 FROM keypoints WHERE image_id = ?", (image_id,))
+                      or self._one("SELECT 1 FROM descriptors WHERE image_id = ?",
+                                   (image_id,)))
+            if exists:
+                if not overwrite:
+                    raise ValueError(f"{self.path}: image {image_id} already has features "
+                                     "(pass overwrite=True to replace them)")
+                self._con.execute("DELETE FROM keypoints WHERE image_id = ?", (image_id,))
+                self._con.execute("DELETE FROM descriptors WHERE image_id = ?", (image_id,))
+                for table in ("matches", "two_view_geometries"):
+                    n = self._con.execute(
+                        f"DELETE FROM {table} WHERE pair_id / {MAX_IMAGE_ID} = ? OR "
+                        f"pair_id % {MAX_IMAGE_ID} = ?", (image_id, image_id)).rowcount
+                    if n:
+                        logger.info("%s: image %d: deleted %d stale rows of %s", self.path,
+                                    image_id, n, table)
+            self._con.execute("INSERT INTO keypoints(image_id, rows, cols, data) "
+                              "VALUES(?, ?, ?, ?)", (image_id, *kp.shape, kp.tobytes()))
+            if self._has_type:
+                self._con.execute("INSERT INTO descriptors(image_id, rows, cols, data, type) "
+                                  "VALUES(?, ?, ?, ?, ?)",
+                                  (image_id, *desc.shape, desc.tobytes(), SIFT_TYPE))
+            else:
+                self._con.execute("INSERT INTO descriptors(image_id, rows, cols, data) "
+                                  "VALUES(?, ?, ?, ?)", (image_id, *desc.shape, desc.tobytes()))
+
+    def read_keypoints(self, image_id: int) -> np.ndarray:
+        """(N, cols) float32 keypoints as stored."""
+        row = self._one("SELECT rows, cols, data FROM keypoints WHERE image_id = ?",
+                        (int(image_id),))
+        if row is None:
+            raise KeyError(f"{self.path}: image {image_id} has no keypoints")
+        return np.frombuffer(row[2], dtype=np.float32).reshape(row[0], row[1]).copy()
+
+    def read_descriptors(self, image_id: int) -> np.ndarray:
+        """(N, 128) uint8 descriptors as stored."""
+        row = self._one("SELECT rows, cols, data FROM descriptors WHERE image_id = ?",
+                        (int(image_id),))
+        if row is None:
+            raise KeyError(f"{self.path}: image {image_id} has no descriptors")
+        return np.frombuffer(row[2], dtype=np.uint8).reshape(row[0], row[1]).copy()
+
+
+class _Transaction:
+    """BEGIN IMMEDIATE ... COMMIT (ROLLBACK on error) on an autocommit connection."""
+
+    def __init__(self, con: sqlite3.Connection):
+        self.con = con
+
+    def __enter__(self):
+        self.con.execute("BEGIN IMMEDIATE")
+        return self.con
+
+    def __exit__(self, exc_type, exc, tb):
+        self.con.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+        return False
