@@ -208,6 +208,8 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
                     if found is not None:
                         image_id = found[0]
                         camera = db.get_camera(found[1])
+                        if single_camera and shared_cam is None:  # resumed run
+                            shared_cam = (camera, camera.has_prior_focal_length, found[1])
                 done_db = db is None or (image_id is not None and db.has_features(image_id))
                 done_h5 = h5 is None or h5.has(name)
                 if done_db and done_h5 and not overwrite:
