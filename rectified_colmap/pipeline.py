@@ -23,7 +23,8 @@ from .depth import DepthMap, resample_depth
 from .features import Features, detect_sift, keypoints_in_mask, split_budget
 from .normals import backproject, estimate_normals
 from .planes import PlaneResult, detect_planes
-from .rectify import Rectification, plan_rectification, rectified_to_image, warp_to_rectified
+from .rectify import (Rectification, plan_rectification, rectified_to_image,
+                      warp_to_rectified)
 
 logger = logging.getLogger(__name__)
 
@@ -99,6 +100,23 @@ def plain_features(gray: np.ndarray, region: np.ndarray, conf: ExtractConf,
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
 
 
+def plan_rectifications(camera: pycolmap.Camera, patches, indices: list[int],
+                        conf: ExtractConf) -> list[Rectification]:
+    """Rectifications of the given patches, scaled down together when their summed size
+    exceeds ``conf.rectify.max_total_area_factor`` x the image area."""
+    def plan(scale):
+        rects = (plan_rectification(camera, patches[i], i, conf.rectify, scale)
+                 for i in indices)
+        return [r for r in rects if r is not None]
+
+    rects = plan(1.0)
+    total = sum(r.size[0] * r.size[1] for r in rects)
+    budget = conf.rectify.max_total_area_factor * camera.width * camera.height
+    if total > budget:
+        rects = plan(float(np.sqrt(budget / total)))
+    return rects
+
+
 def rectified_features(gray: np.ndarray, camera: pycolmap.Camera, rect: Rectification,
                        index: int, budget: int, conf: ExtractConf) -> Features:
     """SIFT inside one rectified patch, mapped back to the original image."""
@@ -152,13 +170,9 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
 
     t0 = time.perf_counter()
     min_angle = np.deg2rad(conf.rectify.min_rectify_angle_deg)
-    rects = []
-    for i, patch in enumerate(planes.patches):
-        if np.arccos(np.clip(-patch.normal[2], -1, 1)) < min_angle:
-            continue  # nearly fronto-parallel already: plain SIFT does as well
-        rect = plan_rectification(camera, patch, i, conf.rectify)
-        if rect is not None:
-            rects.append(rect)
+    todo = [i for i, patch in enumerate(planes.patches)  # nearly fronto-parallel patches
+            if np.arccos(np.clip(-patch.normal[2], -1, 1)) >= min_angle]  # stay plain
+    rects = plan_rectifications(camera, planes.patches, todo, conf)
     cover = viewing_coverage(camera, rects, planes.patches, normals.shape[:2],
                              conf.rectify.max_viewing_angle_deg)
     t["homographies"] = time.perf_counter() - t0

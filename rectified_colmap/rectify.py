@@ -181,9 +181,11 @@ def _rectified_mask(camera: pycolmap.Camera, rect: Rectification, patch_mask: np
 
 
 def plan_rectification(camera: pycolmap.Camera, patch: Patch, patch_index: int,
-                       conf: RectifyConf = RectifyConf()) -> Rectification | None:
+                       conf: RectifyConf = RectifyConf(), scale: float = 1.0
+                       ) -> Rectification | None:
     """Virtual camera, size and valid mask for one patch; None if nothing usable remains
-    (e.g. everything beyond the viewing-angle limit).
+    (e.g. everything beyond the viewing-angle limit). ``scale`` multiplies the virtual focal
+    length after the caps (the pipeline's budget on the total rectified area).
 
     The virtual focal f makes the median smaller singular value of the image->rectified
     Jacobian over the patch 1 (nothing shrinks); the size is then capped by
@@ -231,12 +233,13 @@ def plan_rectification(camera: pycolmap.Camera, patch: Patch, patch_index: int,
         return np.ceil((hi - lo) * f + 2 * conf.border).astype(np.int64)
 
     size = size_for(f)
-    scale = 1.0
+    extra_scale, scale = min(float(scale), 1.0), 1.0
     if size.max() > conf.max_patch_side:
         scale = min(scale, (conf.max_patch_side - 2 * conf.border) / ((hi - lo).max() * f))
     area_cap = conf.max_patch_area_factor * orig_area
     if content * f * f > area_cap:
         scale = min(scale, np.sqrt(area_cap / (content * f * f)))
+    scale *= extra_scale
     if scale < 1.0:
         f *= max(scale, 1e-9)
         size = np.minimum(size_for(f), conf.max_patch_side)
