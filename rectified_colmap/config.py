@@ -61,6 +61,10 @@ class RectifyConf:
     """Cap on the side of a rectified patch (pixels)."""
     max_patch_area_factor: float = 1.0
     """Cap on the rectified area of a patch, as a multiple of its area in the original image."""
+    max_total_area_factor: float = 1.0
+    """Budget on the summed size (w x h) of all rectified patches of an image, as a multiple
+    of the image's area; patches are scaled down together when over it (bounds the cost of
+    SIFT in patches to about that of plain SIFT on the image)."""
     border: int = 6
     """Features closer than this to the border of the warped region are dropped (pixels)."""
 
@@ -125,3 +129,47 @@ confs: dict[str, dict[str, Any]] = {
     "rectsift-fast": {"normals": {"work_max_size": 480}, "sift": {"max_num_features": 4096}},
     "sift": {"planes": {"min_area_frac": 2.0}},  # no patch can pass: exactly plain SIFT
 }
+
+
+# -- evaluation and localization (rectified_colmap.eval) ----------------------------------
+
+@dataclass
+class EvalConf:
+    """Relative-pose evaluation on image pairs (rectified_colmap.eval.relpose)."""
+
+    ratio: float = 0.8
+    """Lowe's ratio test (the paper's value; hloc's NN-ratio)."""
+    mutual: bool = False
+    """Also require mutual nearest neighbours."""
+    ransac_max_error: float = 2.0
+    """Essential-matrix RANSAC threshold (pixels)."""
+    ransac_seed: int = 0
+    """RANSAC random seed (fixed: reproducible tables)."""
+    success_deg: float = 5.0
+    """A pair succeeds when its rotation error is under this (the paper's criterion)."""
+    bin_deg: float = 10.0
+    """Width of the ground-truth rotation bins (the paper: 10 degrees, 18 bins)."""
+    auc_thresholds: tuple = (5.0, 10.0, 20.0)
+    """Pose AUC thresholds (degrees) on max(rotation error, translation-angle error)."""
+    epipolar_threshold: float = 3.0
+    """A match is correct when its Sampson error under the GT geometry is below this (px)."""
+    min_correct: int = 20
+    """Degeneracy-aware success: at least this many GT-correct matches."""
+
+
+@dataclass
+class LocalizeConf:
+    """Offline localization against a triangulated reference (rectified_colmap.eval.localize)."""
+
+    ratio: float = 0.8
+    mutual: bool = False
+    verify_max_error: float = 4.0
+    """Reference matches are kept when their Sampson error under the known poses is below
+    this (pixels), as hloc's triangulation.geometric_verification."""
+    min_track_length: int = 2
+    ransac_max_error: float = 12.0
+    """Absolute-pose RANSAC threshold (pixels; hloc's localize_sfm default)."""
+    num_retrieved: int = 0
+    """Database images matched per query: 0 = all of them."""
+    thresholds: tuple = ((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))
+    """(metres, degrees) accuracy thresholds (Aachen Day-Night)."""
