@@ -98,12 +98,61 @@ class DepthConf:
 
 
 @dataclass
+class VpConf:
+    """Vanishing-point refinement of the dominant directions (rectified_colmap.vp)."""
+
+    enabled: bool = False
+    """Off until it measurably helps the whole pipeline (see docs/vp.md)."""
+    max_image_size: int = 640
+    """Line segments (LSD) are detected on the image downscaled to this max side."""
+    min_length_frac: float = 0.02
+    """Segments shorter than this fraction of the image's max side are dropped."""
+    max_segments: int = 600
+    """Only the longest segments are kept."""
+    inlier_angle_deg: float = 2.0
+    """A segment supports a VP when the line from its midpoint to the VP is within this
+    angle of it (measured on the sphere, around the midpoint ray)."""
+    num_hypotheses: int = 600
+    """RANSAC frames (2 lines -> VP1, 1 line -> VP2 orthogonal, VP3 = cross)."""
+    num_sample_segments: int = 200
+    """Hypotheses are drawn from the longest segments, with probability ~ length."""
+    num_score_segments: int = 300
+    """Hypotheses are scored on the longest segments only (the refinement uses all)."""
+    num_refine_iters: int = 6
+    """Gauss-Newton iterations (with re-assignment) refining the rotation."""
+    num_refine_starts: int = 3
+    """The best RANSAC frames refined; the tightest soft inlier length wins."""
+    min_vp_segments: int = 8
+    """A VP is observed when at least this many segments support it..."""
+    min_vp_support: float = 0.04
+    """...and they hold at least this fraction of the total segment length."""
+    min_strong_support: float = 0.10
+    """Frame directions are trusted (finite sigma) only with two VPs holding at least this
+    length fraction each (one such VP: only its own direction). Random clutter alone gives
+    <= 0.07 per VP; streets and Strecha facades >= 0.11 for the two strongest."""
+    max_sigma_deg: float = 1.5
+    """A frame direction may replace a depth direction only when its 1-sigma angular
+    uncertainty (from the refinement's covariance) is below this."""
+    snap_angle_deg: float = 25.0
+    """A depth direction snaps to the matching frame direction when within this angle;
+    a confident frame direction further away contradicts it."""
+    gravity_angle_deg: float = 10.0
+    """With a gravity prior, frames with no axis within this angle of it are rejected."""
+    patch_min_segments: int = 5
+    """check_patch: fewer labelled segments in the patch: no verdict."""
+    patch_min_inplane_frac: float = 0.6
+    """check_patch: min length fraction of the patch's segments whose VP lies in the plane."""
+    seed: int = 0
+
+
+@dataclass
 class ExtractConf:
     normals: NormalConf = field(default_factory=NormalConf)
     planes: PlaneConf = field(default_factory=PlaneConf)
     rectify: RectifyConf = field(default_factory=RectifyConf)
     sift: SiftConf = field(default_factory=SiftConf)
     depth: DepthConf = field(default_factory=DepthConf)
+    vp: VpConf = field(default_factory=VpConf)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

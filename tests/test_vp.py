@@ -1,0 +1,319 @@
+"""Vanishing points: exact sphere geometry, Manhattan frames from synthetic line sets and
+from rendered line images (through LSD), fusion rules, per-patch checks, visualisations."""
+
+import cv2
+import numpy as np
+import pytest
+
+from rectified_colmap.camera import grid_rays, make_camera, rays_to_image
+from rectified_colmap.config import ExtractConf, VpConf
+from rectified_colmap.vp import (Segments, check_patch, detect_segments, draw_directions,
+                                 draw_segments, fit_manhattan, fuse_directions,
+                                 manhattan_from_image, match_frame, refine_directions,
+                                 save_png, segments_on_sphere, sin_errors)
+
+
+def random_rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def rot(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return cv2.Rodrigues(axis.reshape(3, 1) * np.deg2rad(deg))[0]
+
+
+def axis_errors_deg(D, R):
+    """Angle from each true axis (rows of R) to the nearest row of D, either sign."""
+    return np.degrees(np.arccos(np.clip(np.abs(R @ D.T).max(1), 0, 1)))
+
+
+def street_camera(rng, yaw=None, pitch=None, roll=None):
+    """cam_from_world rotation of a camera in a street (world z up, street along y)."""
+    yaw = rng.uniform(-50, 50) if yaw is None else yaw
+    pitch = rng.uniform(-15, 15) if pitch is None else pitch
+    roll = rng.uniform(-8, 8) if roll is None else roll
+    base = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # looks along +y, y down = -z
+    return rot([0, 0, 1], roll) @ rot([1, 0, 0], pitch) @ rot([0, 1, 0], yaw) @ base
+
+
+def street_segments(rng, clutter=0.3, n=150):
+    """3D segments (M, 2, 3) of a street canyon: window edges on two facades (x = +-6,
+    along y and z), ground tiles (along x and y), plus ``clutter`` x random directions."""
+    segs = []
+    for side in (-6.0, 6.0):
+        y = rng.uniform(2, 40, n // 3)
+        z = rng.uniform(0.5, 12, n // 3)
+        wdt, hgt = rng.uniform(0.6, 1.5, (2, n // 3))
+        x = np.full(n // 3, side)
+        for (dy0, dz0, dy1, dz1) in ((0, 0, 1, 0), (0, 1, 1, 1), (0, 0, 0, 1), (1, 0, 1, 1)):
+            segs.append(np.stack([np.stack([x, y + dy0 * wdt, z + dz0 * hgt], 1),
+                                  np.stack([x, y + dy1 * wdt, z + dz1 * hgt], 1)], 1))
+    gx, gy = rng.uniform(-5, 5, n // 3), rng.uniform(2, 30, n // 3)
+    L = rng.uniform(0.5, 2, n // 3)
+    segs.append(np.stack([np.stack([gx, gy, 0 * gx], 1), np.stack([gx + L, gy, 0 * gx], 1)], 1))
+    segs.append(np.stack([np.stack([gx, gy, 0 * gx], 1), np.stack([gx, gy + L, 0 * gx], 1)], 1))
+    S = np.concatenate(segs)
+    m = int(clutter * len(S))
+    if m:
+        c = np.stack([rng.uniform(-5, 5, m), rng.uniform(3, 30, m), rng.uniform(0, 8, m)], 1)
+        d = rng.normal(size=(m, 3))
+        d *= rng.uniform(0.5, 2, (m, 1)) / np.linalg.norm(d, axis=1, keepdims=True)
+        S = np.concatenate([S, np.stack([c, c + d], 1)])
+    return S
+
+
+def project_segments(camera, R, t, S, clip=0.3):
+    """3D segments -> (N, 2, 2) COLMAP pixels (clipped to z > clip and to the image)."""
+    P = S @ R.T + t
+    z0, z1 = P[:, 0, 2], P[:, 1, 2]
+    keep = (z0 > clip) | (z1 > clip)
+    P, z0, z1 = P[keep], z0[keep], z1[keep]
+    a = np.clip((clip - z0) / np.where(z1 != z0, z1 - z0, 1), 0, 1)[:, None]
+    b = np.clip((clip - z1) / np.where(z0 != z1, z0 - z1, 1), 0, 1)[:, None]
+    p0 = np.where((z0 < clip)[:, None], P[:, 0] + a * (P[:, 1] - P[:, 0]), P[:, 0])
+    p1 = np.where((z1 < clip)[:, None], P[:, 1] + b * (P[:, 0] - P[:, 1]), P[:, 1])
+    xy = np.stack([rays_to_image(camera, p0), rays_to_image(camera, p1)], 1)
+    ok = np.isfinite(xy).all((1, 2))
+    xy = xy[ok]
+    inside = ((xy[..., 0] > 0) & (xy[..., 0] < camera.width) & (xy[..., 1] > 0)
+              & (xy[..., 1] < camera.height)).all(1)
+    return xy[inside]
+
+
+def render_street(camera, R, rng, clutter=0.3, noise=6.0):
+    """A grey image of the street's line drawing (anti-aliased, noisy) for LSD."""
+    t = -R @ np.array([0.0, 0.0, 1.6])
+    xy = project_segments(camera, R, t, street_segments(rng, clutter))
+    img = np.full((camera.height, camera.width), 170, np.uint8)
+    for p, q in (np.round((xy - 0.5) * 16).astype(int)):
+        cv2.line(img, tuple(map(int, p)), tuple(map(int, q)), 40, 2, cv2.LINE_AA, shift=4)
+    img = img.astype(np.float32) + rng.normal(scale=noise, size=img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def cam(w=480, h=320, f=400.0, model="PINHOLE"):
+    if model == "PINHOLE":
+        return make_camera("PINHOLE", [f, f, w / 2, h / 2], w, h)
+    return make_camera("SIMPLE_RADIAL", [f, w / 2, h / 2, -0.08], w, h)
+
+
+# -- exact geometry -------------------------------------------------------------------------
+
+def test_sin_error_is_angle_at_midpoint():
+    """A segment through the principal point at angle a from the VP direction's image."""
+    camera = cam()
+    for a in (0.0, 1.0, 5.0, 30.0):
+        c = np.array([240.0, 160.0])
+        u = np.array([np.cos(np.deg2rad(a)), np.sin(np.deg2rad(a))])
+        seg = segments_on_sphere(camera, np.stack([c - 20 * u, c + 20 * u])[None])
+        v = np.array([1.0, 0.0, 0.0])  # VP at infinity along x in the image
+        assert np.degrees(np.arcsin(sin_errors(seg.normals, seg.mids, v[None])[0, 0])) \
+            == pytest.approx(a, abs=1e-6)
+
+
+def test_undistorted_segments_are_exact_great_circles():
+    """Points of a 3D line projected through a distorted camera: the fitted interpretation
+    plane contains the 3D line's direction and its points."""
+    camera = cam(model="SIMPLE_RADIAL")
+    X0, d = np.array([-1.0, 0.4, 4.0]), np.array([1.0, 0.1, 0.3])
+    xy = rays_to_image(camera, np.stack([X0, X0 + 2 * d]))
+    seg = segments_on_sphere(camera, xy[None])
+    assert abs(seg.normals[0] @ (d / np.linalg.norm(d))) < 1e-9
+    assert abs(seg.normals[0] @ (X0 / np.linalg.norm(X0))) < 1e-9
+
+
+def test_lsd_endpoints_in_colmap_convention():
+    """A horizontal dark bar from x=100 to 300 (pixel edges) at rows 80..83: LSD's segment
+    runs along the bar's edge at y = 80 or 84 (COLMAP: pixel row r spans [r, r+1])."""
+    img = np.full((200, 400), 200, np.uint8)
+    img[80:84, 100:300] = 30
+    xy = detect_segments(img, VpConf(max_image_size=400, min_length_frac=0.2))
+    assert len(xy) >= 1
+    ys = xy[..., 1].ravel()
+    assert np.min(np.abs(ys[:, None] - np.array([80.0, 84.0])), axis=1).max() < 0.6
+    assert xy[..., 0].min() == pytest.approx(100, abs=2)
+    assert xy[..., 0].max() == pytest.approx(300, abs=2)
+
+
+# -- Manhattan frame from synthetic line sets ------------------------------------------------
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_RADIAL"])
+def test_frame_from_projected_segments(seed, model):
+    rng = np.random.default_rng(seed)
+    camera = cam(640, 432, 500.0, model=model)
+    R = street_camera(rng)
+    t = -R @ np.array([0.0, 0.0, 1.6])
+    xy = project_segments(camera, R, t, street_segments(rng, clutter=0.4, n=450))
+    xy = xy + rng.normal(scale=0.3, size=xy.shape)  # endpoint noise (pixels)
+    xy = xy[np.argsort(-np.linalg.norm(xy[:, 1] - xy[:, 0], axis=-1))]
+    xy = xy[np.linalg.norm(xy[:, 1] - xy[:, 0], axis=-1) > 20]
+    mf = fit_manhattan(segments_on_sphere(camera, xy), VpConf())
+    assert mf.frame is not None
+    np.testing.assert_allclose(mf.frame @ mf.frame.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(mf.frame) == pytest.approx(1.0)
+    err = axis_errors_deg(mf.frame, R.T)
+    assert err.max() < 1.5, err  # 40% random clutter biases by up to ~1.3 deg
+    assert np.all(mf.sigma_deg < 0.5) and mf.observed.sum() >= 2
+    assert 0.3 < mf.support.sum() <= 1.0 and np.all(np.diff(mf.support) <= 0)
+
+
+def test_single_vp_leaves_others_undetermined():
+    """Only vertical lines: the vertical VP is found, the other two axes have sigma = inf."""
+    rng = np.random.default_rng(3)
+    camera = cam()
+    R = street_camera(rng, roll=5)
+    t = -R @ np.array([0.0, 0.0, 1.6])
+    S = street_segments(rng, clutter=0.0)
+    d = S[:, 1] - S[:, 0]
+    S = S[np.abs(d[:, 2]) > 0.5 * np.linalg.norm(d, axis=1)]  # vertical ones only
+    mf = fit_manhattan(segments_on_sphere(camera, project_segments(camera, R, t, S)))
+    assert mf.frame is not None and mf.observed.sum() == 1
+    up = R[:, 2]
+    assert np.degrees(np.arccos(abs(mf.frame[0] @ up))) < 0.2
+    assert mf.sigma_deg[0] < 0.5 and np.all(np.isinf(mf.sigma_deg[1:]))
+
+
+def test_no_segments_no_frame():
+    mf = fit_manhattan(Segments.empty())
+    assert mf.frame is None
+    res = refine_directions(np.full((120, 160), 90, np.uint8), cam(160, 120, 150.0),
+                            np.eye(3), VpConf())
+    np.testing.assert_array_equal(res.directions, np.eye(3))
+    assert not res.snapped.any() and res.frame is None
+
+
+def test_gravity_prior_keeps_vertical_axis():
+    rng = np.random.default_rng(5)
+    camera = cam()
+    R = street_camera(rng)
+    t = -R @ np.array([0.0, 0.0, 1.6])
+    seg = segments_on_sphere(camera, project_segments(camera, R, t,
+                                                      street_segments(rng, 0.5)))
+    g = R @ np.array([0.0, 0.0, -1.0])  # world down in the camera frame
+    mf = fit_manhattan(seg, VpConf(num_hypotheses=50), gravity=g)
+    assert mf.frame is not None
+    assert np.degrees(np.arccos(np.abs(mf.frame @ g).max())) < 0.5
+    assert axis_errors_deg(mf.frame, R.T).max() < 0.5
+
+
+# -- fusion --------------------------------------------------------------------------------
+
+def _frame(R, sigma=(0.1, 0.1, 0.1)):
+    from rectified_colmap.vp import ManhattanFrame
+    return ManhattanFrame(R.copy(), np.array(sigma, float), np.full(3, 0.3),
+                          np.full(3, 50), np.isfinite(sigma), np.zeros(0, int))
+
+
+def test_match_frame_signed_permutation():
+    rng = np.random.default_rng(0)
+    R = random_rotation(rng)
+    D = np.stack([-R[2], R[0], -R[1]])
+    perm, signs = match_frame(D, R)
+    np.testing.assert_array_equal(perm, [2, 0, 1])
+    np.testing.assert_array_equal(signs, [-1, 1, -1])
+
+
+@pytest.mark.parametrize("err_deg", [5.0, 15.0, 20.0])
+def test_fusion_snaps_all_and_keeps_signs(err_deg):
+    rng = np.random.default_rng(int(err_deg))
+    R = random_rotation(rng)
+    D = (R @ rot(rng.normal(size=3), err_deg).T)[[1, 2, 0]] * np.array([[-1], [1], [1]])
+    if np.linalg.det(D) < 0:
+        D[2] *= -1
+    out, snapped, contra, _, _ = fuse_directions(D, _frame(R), VpConf())
+    assert snapped.all() and not contra.any()
+    assert axis_errors_deg(out, R).max() < 1e-5
+    assert np.all(np.einsum("ij,ij->i", out, D) > 0)  # signs of the depth directions
+    assert np.linalg.det(out) == pytest.approx(1.0)
+
+
+def test_fusion_one_confident_axis_rotates_minimally():
+    rng = np.random.default_rng(1)
+    R = random_rotation(rng)
+    D = R @ rot([0.3, 1, 0.2], 12).T
+    out, snapped, contra, _, _ = fuse_directions(D, _frame(R, (0.2, np.inf, np.inf)),
+                                                 VpConf())
+    assert snapped.tolist() == [True, False, False] and not contra.any()
+    np.testing.assert_allclose(out[0], R[0], atol=1e-12)
+    np.testing.assert_allclose(out @ out.T, np.eye(3), atol=1e-9)
+    # the smallest rotation: the other rows move by at most the first one's correction
+    assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", out, D), -1, 1))).max() \
+        <= np.degrees(np.arccos(D[0] @ R[0])) + 1e-6
+
+
+def test_fusion_disagreement_and_uncertainty():
+    rng = np.random.default_rng(2)
+    R = random_rotation(rng)
+    D = R @ rot(R[0], 40).T  # axes 1, 2 off by 40 deg, axis 0 exact
+    out, snapped, contra, _, _ = fuse_directions(D, _frame(R), VpConf(snap_angle_deg=25))
+    assert snapped.tolist() == [True, False, False] and contra.tolist() == [False, True, True]
+    np.testing.assert_allclose(out, D, atol=1e-9)  # snapping axis 0 changes nothing
+    out, snapped, contra, _, _ = fuse_directions(D, _frame(R, (5.0, 5.0, 5.0)), VpConf())
+    assert not snapped.any() and not contra.any()
+    np.testing.assert_array_equal(out, D)
+
+
+# -- rendered scenes through LSD -------------------------------------------------------------
+
+def test_refine_directions_on_renders():
+    """Rendered street line drawings, depth directions off by 10-20 deg: VP refinement
+    brings them to < 1 deg (statistics over several scenes)."""
+    rng = np.random.default_rng(11)
+    camera = cam(640, 432, 500.0)
+    before, after = [], []
+    for _ in range(5):
+        R = street_camera(rng)
+        img = render_street(camera, R, rng, clutter=0.3)
+        G = R.T.copy()  # world axes in the camera frame (rows)
+        D = G @ rot(rng.normal(size=3), rng.uniform(10, 20)).T
+        res = refine_directions(img, camera, D, VpConf())
+        before.append(axis_errors_deg(D, G))
+        after.append(axis_errors_deg(res.directions, G))
+        assert res.snapped.sum() >= 2
+    before, after = np.array(before), np.array(after)
+    assert np.median(before) > 8
+    assert np.median(after) < 0.5 and after.max() < 1.5
+
+
+def test_manhattan_from_image_and_patch_check(tmp_path):
+    rng = np.random.default_rng(4)
+    camera = cam(640, 432, 500.0)
+    R = street_camera(rng, yaw=35, pitch=-5, roll=3)
+    img = render_street(camera, R, rng, clutter=0.2)
+    res = manhattan_from_image(img, camera, VpConf())
+    assert res.directions is not None and res.snapped.sum() >= 2
+    assert axis_errors_deg(res.directions, R.T).max() < 0.5
+    # per patch: the pixels (on an 80 x 54 grid) whose rays hit the facade x = 6 side
+    h, w = 54, 80
+    d = grid_rays(camera, w, h) @ R  # world directions of the rays
+    masks = []
+    for side in (-6.0, 6.0):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = side / d[..., 0]
+            z = 1.6 + s * d[..., 2]
+        masks.append((s > 0) & (z > 0) & (z < 12))
+    side = int(np.argmax([m.sum() for m in masks]))
+    right = masks[side]
+    assert right.mean() > 0.1
+    n_true = R @ np.array([1.0 if side == 0 else -1.0, 0, 0])  # facing the street
+    good = check_patch(res, right, n_true, camera, VpConf())
+    assert good.num_segments >= 5 and good.consistent is True
+    assert good.angle_deg < 0.5
+    bad = check_patch(res, right, R @ np.array([0, -1.0, 0]), camera, VpConf())
+    assert bad.consistent is False
+    # visualisations
+    p1 = save_png(tmp_path / "seg.png", draw_segments(img, res))
+    p2 = save_png(tmp_path / "dirs.png", draw_directions(img, camera, res, np.eye(3)))
+    assert cv2.imread(str(p1)).shape == (432, 640, 3) and p2.stat().st_size > 0
+
+
+def test_config_section_and_bad_input():
+    conf = ExtractConf.from_dict({"vp": {"snap_angle_deg": 15}})
+    assert conf.vp.snap_angle_deg == 15.0 and conf.vp.enabled is False
+    with pytest.raises(ValueError, match="camera"):
+        refine_directions(np.zeros((10, 10), np.uint8), cam(), np.eye(3))
+    with pytest.raises(ValueError, match="uint8"):
+        detect_segments(np.zeros((10, 10), np.float32))
