@@ -101,8 +101,16 @@ def read_image(path: Path) -> np.ndarray:
 _WORKER: dict = {}
 
 
+def quiet_pycolmap() -> None:
+    """pycolmap's INFO lines (one per SIFT extractor) would interleave with the progress
+    bar; keep its warnings unless our own log level is DEBUG."""
+    if logging.getLogger("rectified_colmap").getEffectiveLevel() > logging.DEBUG:
+        pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 1)
+
+
 def _init_worker(depth_path, depth_kind, png_scale, depth_model, model_threads):
     cv2.setNumThreads(1)
+    quiet_pycolmap()
     _WORKER.clear()
     _WORKER["files"] = None
     _WORKER["network"] = None

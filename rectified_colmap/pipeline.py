@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -49,8 +49,12 @@ def work_size(width: int, height: int, max_size: int) -> tuple[int, int]:
 
 def depth_to_normals(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf,
                      shift: float | None = None) -> np.ndarray:
-    """Depth of any resolution and kind -> normals (h, w, 3) on the work grid."""
-    w, h = work_size(camera.width, camera.height, conf.normals.work_max_size)
+    """Depth of any resolution and kind -> normals (h, w, 3) on the work grid.
+
+    The grid is never finer than the depth map: upsampled depth is piecewise constant or
+    interpolated, and neither adds information to a plane fit."""
+    max_size = min(conf.normals.work_max_size, max(depth.values.shape))
+    w, h = work_size(camera.width, camera.height, max_size)
     if depth.kind == "disparity" and shift is None:
         shift = _disparity_shift(depth, camera, conf)
     z = resample_depth(depth.to_depth(shift or 0.0), w, h)
@@ -98,6 +102,29 @@ def plain_features(gray: np.ndarray, region: np.ndarray, conf: ExtractConf,
     feats = detect_sift(np.ascontiguousarray(gray[y0:y1, x0:x1]), conf.sift, n)
     feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
+
+
+def orient_with_vanishing_points(gray: np.ndarray, camera: pycolmap.Camera,
+                                 planes: PlaneResult, conf: ExtractConf,
+                                 rng: np.random.Generator) -> PlaneResult:
+    """Depth says WHICH pixels form planes, lines say HOW they are oriented: each patch of a
+    direction that snapped to a trusted vanishing direction takes that direction (with the
+    patch's sign); patches of a direction the lines contradict are dropped."""
+    from .vp import refine_directions
+
+    vp = refine_directions(gray, camera, planes.directions, conf.vp, rng=rng)
+    if vp.directions is None:
+        return planes
+    patches = []
+    for patch in planes.patches:
+        k = patch.axis
+        if vp.contradicted[k]:
+            continue
+        if vp.snapped[k]:
+            d = vp.directions[k]
+            patch = replace(patch, normal=d * np.sign(d @ patch.normal))
+        patches.append(patch)
+    return replace(planes, directions=vp.directions, patches=patches)
 
 
 def plan_rectifications(camera: pycolmap.Camera, patches, indices: list[int],
@@ -167,6 +194,11 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     t0 = time.perf_counter()
     planes = detect_planes(normals, conf.planes, rng)
     t["planes"] = time.perf_counter() - t0
+
+    if conf.vp.enabled and planes.directions is not None:
+        t0 = time.perf_counter()
+        planes = orient_with_vanishing_points(gray, camera, planes, conf, rng)
+        t["vp"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     min_angle = np.deg2rad(conf.rectify.min_rectify_angle_deg)

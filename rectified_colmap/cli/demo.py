@@ -1,0 +1,32 @@
+"""`rectified-colmap demo`: render a street, extract with the embedded model, map."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+logger = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="run the whole job on a rendered street (no data needed)")
+    p.add_argument("--output", type=Path, default=Path("demo"))
+    p.add_argument("--num_images", type=int, default=8)
+    p.add_argument("--depth_model", default="rectsift-lite0")
+    p.add_argument("--num_workers", type=int, default=1)
+    p.add_argument("--overwrite", action="store_true", help="start from an empty folder")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..demo import run_demo
+
+    res = run_demo(args.output, args.num_images, args.depth_model, args.overwrite,
+                   args.num_workers)
+    print(json.dumps(res, indent=2))
+    ok = res["extraction_ok"] and res["registered"] == res["images"]
+    if not ok:
+        logger.error("demo: not every image was registered")
+    return 0 if ok else 1
