@@ -67,6 +67,9 @@ class RectifyConf:
     SIFT in patches to about that of plain SIFT on the image)."""
     border: int = 6
     """Features closer than this to the border of the warped region are dropped (pixels)."""
+    keep_plain: bool = True
+    """Also keep plain SIFT on rectified pixels (they share the budget half and half): a
+    safety net when the depth, and so the patch orientation, is unreliable."""
 
 
 @dataclass

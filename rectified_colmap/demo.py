@@ -22,34 +22,20 @@ from .extract import DEFAULT_DEPTH_MODEL, extract
 logger = logging.getLogger(__name__)
 
 
-def _look_at(c: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """World-from-camera rotation (camera y down; the renderer's world has Y up)."""
-    z = (target - c) / np.linalg.norm(target - c)
-    x = np.cross(np.array([0.0, -1.0, 0.0]), z)
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], 1)
-
-
 def render_walk(out_dir: Path, num_images: int = 8, width: int = 640, height: int = 480,
-                seed: int = 0) -> tuple[list[str], np.ndarray, dict[str, np.ndarray]]:
-    """Write a walk along one side of a street to out_dir; returns (names, K, R_wc by name)."""
+                seed: int = 0) -> tuple[list[str], pycolmap.Camera, dict[str, pycolmap.Rigid3d]]:
+    """Write a walk along a street to out_dir; returns (names, camera, cam_from_world)."""
     rng = np.random.default_rng(seed)
     scene = synth.street(rng)
-    f = 0.7 * width
-    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-    side = 1.0 if scene.lo[:, 0].max() > 0 else -1.0
-    names, rotations = [], {}
+    camera = synth.pinhole_camera(width, height, 0.7 * width)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for i in range(num_images):
-        c = np.array([-side * scene.street_w * 0.25, 1.7, 2.0 + 1.5 * i])
-        yaw = side * np.deg2rad(30 + 40 * i / max(num_images - 1, 1))
-        R = _look_at(c, c + np.array([np.sin(yaw), -0.05, np.cos(yaw)]))
-        img = synth.render(scene, K, R, c, width, height, seed=scene.seed)["image"]
+    names, poses = [], {}
+    for i, pose in enumerate(synth.view_orbit(scene, num_images, rng, camera=camera)):
         name = f"street_{i:03d}.png"
-        cv2.imwrite(str(out_dir / name), img[..., ::-1])
+        cv2.imwrite(str(out_dir / name), synth.render(scene, camera, pose).image[..., ::-1])
         names.append(name)
-        rotations[name] = R
-    return names, K, rotations
+        poses[name] = pose
+    return names, camera, poses
 
 
 def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH_MODEL,
@@ -59,8 +45,8 @@ def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH
         shutil.rmtree(output)
     images = output / "images"
     logger.info("rendering %d street images into %s", num_images, images)
-    names, K, R_wc = render_walk(images, num_images)
-    params = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
+    names, camera, gt = render_walk(images, num_images)
+    params = ",".join(f"{p:.6f}" for p in camera.params)
     db, h5 = output / "database.db", output / "features.h5"
     summary = extract(images, database=db, hloc_features=h5, depth_model=depth_model,
                       camera_model="PINHOLE", camera_params=params, single_camera=True,
@@ -69,6 +55,8 @@ def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH
     pycolmap.match_exhaustive(db)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = 0
+    opts.ba_refine_focal_length = False  # the renderer's intrinsics are exact
+    opts.ba_refine_extra_params = False
     recs = pycolmap.incremental_mapping(db, images, output / "sparse", opts)
     result = {"images": len(names), "registered": 0, "points3D": 0, "max_rot_err_deg": None,
               "extraction_ok": summary.ok, "rectified_images": len(summary.done)
@@ -82,7 +70,7 @@ def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH
         errs = []
         for n, im in ims.items():  # relative rotations to the reference image vs GT
             R_est = (im.cam_from_world() * ims[ref].cam_from_world().inverse()).rotation.matrix()
-            R_gt = R_wc[n].T @ R_wc[ref]
+            R_gt = (gt[n] * gt[ref].inverse()).rotation.matrix()
             cos = (np.trace(R_est.T @ R_gt) - 1) / 2
             errs.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
         result["max_rot_err_deg"] = float(max(errs))

@@ -87,10 +87,10 @@ def viewing_coverage(camera: pycolmap.Camera, rects: list[Rectification], patche
     return cover
 
 
-def plain_features(gray: np.ndarray, region: np.ndarray, conf: ExtractConf,
+def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: ExtractConf,
                    margin: int = 16) -> Features:
-    """Plain SIFT on the pixels of ``region`` (a grid covering the image), detected on the
-    region's bounding box only, with the budget scaled to that box."""
+    """About ``budget`` plain SIFT features on the pixels of ``region`` (a grid covering the
+    image), detected on the region's bounding box only."""
     H, W = gray.shape
     h, w = region.shape
     rows, cols = np.flatnonzero(region.any(1)), np.flatnonzero(region.any(0))
@@ -98,7 +98,8 @@ def plain_features(gray: np.ndarray, region: np.ndarray, conf: ExtractConf,
     x1 = min(W, int(np.ceil((cols[-1] + 1) * W / w)) + margin)
     y0 = max(0, int(np.floor(rows[0] * H / h)) - margin)
     y1 = min(H, int(np.ceil((rows[-1] + 1) * H / h)) + margin)
-    n = round(conf.sift.max_num_features * (x1 - x0) * (y1 - y0) / (W * H))
+    box = region[int(y0 * h / H):int(np.ceil(y1 * h / H)), int(x0 * w / W):int(np.ceil(x1 * w / W))]
+    n = round(budget * box.size / max(region.sum(), 1))  # SIFT's budget covers the whole box
     feats = detect_sift(np.ascontiguousarray(gray[y0:y1, x0:x1]), conf.sift, n)
     feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
@@ -214,12 +215,17 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
         return result
 
     areas = np.bincount(cover.ravel() + 1, minlength=len(rects) + 1).astype(float)
+    plain_region = cover < 0
+    if conf.rectify.keep_plain:  # rectified pixels share their budget with plain SIFT
+        plain_region = np.ones_like(plain_region)
+        areas[0] += areas[1:].sum() / 2
+        areas[1:] /= 2
     budgets = split_budget(total, areas)
 
     parts = []
     t0 = time.perf_counter()
     if budgets[0] > 0:
-        parts.append(plain_features(gray, cover < 0, conf))
+        parts.append(plain_features(gray, plain_region, int(budgets[0]), conf))
     t["sift_plain"] = time.perf_counter() - t0
     t["warps+sift_patches"] = 0.0
     for i, rect in enumerate(rects):

@@ -70,10 +70,11 @@ def test_rectified_keypoints_lie_on_the_plane_consistently(texture):
     predict: A = J A_rect, checked against the homography between two views."""
     R0, t0 = look_at([0.5, -5, 3.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R0, t0, SIZE)
-    res = extract_image(img, CAMERA, DepthMap(z, "metric"))
+    conf = ExtractConf()
+    conf.rectify.keep_plain = False  # the paper's split: plain SIFT off the planes only
+    res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
     assert len(res.rectifications) == 1
     rect = res.rectifications[0]
-    plane_n = R0[:, 2] * np.sign(-(R0[:, 2] @ t0)) * -1  # world +z in camera frame, facing
     assert np.degrees(np.arccos(abs(rect.normal @ R0[:, 2]))) < 0.5
     f = res.features
     on_patch = f.patch >= 0
@@ -110,3 +111,17 @@ def test_rectified_sift_matches_more_than_plain_at_strong_viewpoint_change(textu
         wins += cr > cp
     assert wins >= n_pairs - 1
     assert rect_total > 1.5 * plain_total
+
+
+def test_keep_plain_shares_the_budget_on_planes(texture):
+    R0, t0 = look_at([0.5, -5, 3.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R0, t0, SIZE)
+    conf = ExtractConf()
+    conf.sift.max_num_features = 2000
+    assert conf.rectify.keep_plain
+    f = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    plain, rect = (f.patch < 0).sum(), (f.patch >= 0).sum()
+    assert plain > 300 and rect > 300  # both kinds on the plane
+    conf.rectify.keep_plain = False
+    g = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    assert (g.patch >= 0).sum() > rect and (g.patch < 0).sum() < plain
