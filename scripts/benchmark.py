@@ -41,7 +41,7 @@ def synthetic_inputs(n: int, width: int, height: int, seed: int):
     for i in range(n):
         scene = synth.street(rng)
         camera = synth.pinhole_camera(width, height, 0.9 * width)
-        pose = synth.random_view(scene, rng)
+        pose = synth.random_view(scene, rng, camera)
         r = synth.render(scene, camera, pose)
         yield f"synthetic_{i:03d}", r.image, camera, DepthMap(r.depth, "metric")
 
