@@ -1,0 +1,142 @@
+#!/usr/bin/env python
+"""Plain vs rectified SIFT on the Strecha scenes: relative pose per pair and localization.
+
+Reproducible benchmark behind docs/evaluation.md. Per scene of ``--data`` (folders with
+images/, sparse/ and pairs_with_gt.txt, see the data README):
+
+1. features per method into ``<output_dir>/features/<scene>/<method>.h5`` with
+   rectified_colmap.extract.extract (resumable; existing files are reused):
+   ``sift`` = the pipeline without planes (exactly plain COLMAP SIFT), ``rectsift`` = the
+   pipeline with depth from ``--depth_path`` and/or ``--depth_model``;
+2. relative pose on every pair of pairs_with_gt.txt (rectified_colmap.eval.relpose), all
+   scenes pooled -> records.csv, summary.md, success.png;
+3. with ``--localize``: every third image held out as a query, the rest triangulated into
+   their known (metric) poses -> localization.md.
+
+Example (plain SIFT only)::
+
+    python scripts/eval_strecha.py --data ../shared/data/strecha-dev \
+        --output_dir outputs/strecha --methods sift --num_workers 2 --localize
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rectified_colmap.cli.evaluate import write_outputs
+from rectified_colmap.config import EvalConf, LocalizeConf
+from rectified_colmap.eval.localize import accuracy_table, localize_with_model
+from rectified_colmap.eval.pairs import read_pairs_with_gt
+from rectified_colmap.eval.relpose import evaluate_pairs
+
+logger = logging.getLogger("eval_strecha")
+
+METHODS = ("sift", "rectsift")
+
+
+def scene_camera(scene: Path) -> tuple[str, str]:
+    """(model, 'p1,p2,...') of the scene's single camera model (all images must share it)."""
+    rec = pycolmap.Reconstruction(str(scene / "sparse"))
+    cams = {(c.model.name, tuple(np.round(c.params, 6)), c.width, c.height)
+            for c in rec.cameras.values()}
+    if len(cams) != 1:
+        raise SystemExit(f"{scene}/sparse: {len(cams)} different cameras; expected one")
+    model, params, _, _ = cams.pop()
+    return model, ",".join(f"{p:.10g}" for p in params)
+
+
+def extract_method(scene: Path, method: str, out: Path, args) -> Path:
+    from rectified_colmap.extract import DEFAULT_DEPTH_MODEL, extract
+
+    h5 = out / "features" / scene.name / f"{method}.h5"
+    names = [f"images/{p.name}" for p in sorted((scene / "images").glob("*.jpg"))]
+    model, params = scene_camera(scene)
+    sift = {"max_num_features": args.max_num_features} if args.max_num_features else {}
+    if method == "sift":
+        kw = dict(conf={"planes": {"min_area_frac": 2.0}, "sift": sift}, depth_model="none")
+    else:
+        depth_model = args.depth_model or DEFAULT_DEPTH_MODEL
+        kw = dict(conf={"sift": sift}, depth_model=depth_model, depth_path=args.depth_path)
+    t = time.perf_counter()
+    summary = extract(scene, hloc_features=h5, image_list=names, camera_model=model,
+                      camera_params=params, num_workers=args.num_workers,
+                      progress=not args.no_progress, **kw)
+    if not summary.ok:
+        raise SystemExit(f"{scene.name}/{method}: extraction failed\n{summary.report()}")
+    logger.info("%s/%s: %s (%.1f s)", scene.name, method, summary.report().splitlines()[1],
+                time.perf_counter() - t)
+    return h5
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, required=True, help="strecha-dev folder")
+    p.add_argument("--output_dir", type=Path, required=True)
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    p.add_argument("--scenes", nargs="*", help="scene names (default: all)")
+    p.add_argument("--depth_model", help="depth network for rectsift (registry name or .onnx)")
+    p.add_argument("--depth_path", type=Path, help="folder of depth maps for rectsift")
+    p.add_argument("--max_num_features", type=int, default=None,
+                   help="SIFT budget per image for both methods (default 8192)")
+    p.add_argument("--bin_deg", type=float, default=10.0)
+    p.add_argument("--ransac_max_error", type=float, default=None)
+    p.add_argument("--num_workers", type=int, default=2)
+    p.add_argument("--localize", action="store_true", help="also run the localization")
+    p.add_argument("--no_plot", action="store_true")
+    p.add_argument("--no_progress", action="store_true")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
+    if not args.data.is_dir():
+        raise SystemExit(f"--data {args.data}: not a directory")
+    scenes = sorted(d for d in args.data.iterdir() if (d / "pairs_with_gt.txt").is_file())
+    if args.scenes:
+        scenes = [s for s in scenes if s.name in args.scenes]
+    if not scenes:
+        raise SystemExit(f"{args.data}: no scene with pairs_with_gt.txt")
+    out = args.output_dir
+    out.mkdir(parents=True, exist_ok=True)
+    conf = EvalConf(bin_deg=args.bin_deg)
+    if args.ransac_max_error is not None:
+        conf.ransac_max_error = args.ransac_max_error
+
+    records, loc_rows = [], {}
+    for scene in scenes:
+        feats = {m: extract_method(scene, m, out, args) for m in args.methods}
+        pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
+        recs = evaluate_pairs(pairs, feats, conf, args.num_workers,
+                              progress=not args.no_progress)
+        for r in recs:
+            r["name0"], r["name1"] = f"{scene.name}/{r['name0']}", f"{scene.name}/{r['name1']}"
+        records += recs
+        if args.localize:
+            model = pycolmap.Reconstruction(str(scene / "sparse"))
+            for m, h5 in feats.items():
+                res, acc = localize_with_model(model, h5, out / "localize" / scene.name / m,
+                                               holdout_every=3, name_prefix="images/",
+                                               conf=LocalizeConf(), image_dir=scene)
+                loc_rows[f"{scene.name} {m}"] = (acc, len(res))
+    table = write_outputs(records, out, conf, not args.no_plot,
+                          f"Strecha ({', '.join(s.name for s in scenes)})")
+    text = ["# Strecha results", "", "Command:", "",
+            "    python " + " ".join(shlex.quote(a) for a in [sys.argv[0]] + (argv or sys.argv[1:])),
+            "", "## Relative pose", "", table]
+    if loc_rows:
+        loc = accuracy_table({k: v[0] for k, v in loc_rows.items()}, LocalizeConf().thresholds,
+                             {k: v[1] for k, v in loc_rows.items()})
+        (out / "localization.md").write_text(loc)
+        text += ["## Localization (every third image a query)", "", loc]
+    (out / "results.md").write_text("\n".join(text))
+    print("\n".join(text))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
