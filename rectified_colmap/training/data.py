@@ -1,0 +1,191 @@
+"""Training data: a pool of pre-rendered street views (.npz) + on-the-fly augmentation.
+
+A sample (numpy, as stored): ``image`` (H, W, 3) uint8 RGB, ``depth`` (H, W) float32 z-depth
+(0 = invalid/sky), ``normals`` (H, W, 3) float16 camera-frame unit normals toward the camera
+(0 = invalid), ``K`` (3, 3) float64 in the COLMAP pixel convention (centre of the top-left
+pixel at (0.5, 0.5)).
+
+A training item (torch, from :class:`PoolDataset`): ``image`` (3, h, w) float32 normalised
+as the network expects (``p / 128 - 127 / 128``), ``depth`` (1, h, w), ``normals`` (3, h, w),
+``K`` (3, 3) float32 of the crop. Geometric augmentation (random zoom-crop, horizontal flip)
+keeps K, depth and normals exact; photometric augmentation (exposure, gamma, colour,
+saturation, haze, blur, noise, JPEG) touches only the image.
+
+Views are rendered by :func:`render_pool` with ``rectified_colmap.synth`` when it offers
+``street``/``random_view``/``render``, else with the fallback ray-caster in ``render.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .render import Textures, random_sample
+
+logger = logging.getLogger(__name__)
+
+_TEXTURES: Textures | None = None
+
+
+def _init_worker(texture_dir):
+    global _TEXTURES
+    cv2.setNumThreads(1)
+    _TEXTURES = Textures(texture_dir)
+
+
+def _render_one(args) -> str:
+    seed, width, height, out_dir = args
+    path = Path(out_dir) / f"{seed:08d}.npz"
+    if path.exists():
+        return str(path)
+    s = random_sample(seed, width, height, _TEXTURES)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, image=s["image"], depth=s["depth"], normals=s["normals"].astype(np.float16),
+             K=s["K"])
+    tmp.replace(path)
+    return str(path)
+
+
+def render_pool(out_dir: str | Path, seeds, width: int = 320, height: int = 240,
+                texture_dir: str | Path | None = None, processes: int = 2) -> list[Path]:
+    """Render (or reuse) one view per seed into ``out_dir/<seed>.npz``; returns the paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jobs = [(int(s), width, height, str(out_dir)) for s in seeds]
+    if processes <= 1:
+        _init_worker(texture_dir)
+        paths = [_render_one(j) for j in jobs]
+    else:
+        with mp.get_context("fork").Pool(processes, _init_worker, (texture_dir,)) as pool:
+            paths = []
+            for i, p in enumerate(pool.imap(_render_one, jobs, chunksize=4)):
+                paths.append(p)
+                if (i + 1) % 200 == 0:
+                    logger.info("rendered %d / %d views", i + 1, len(jobs))
+    return [Path(p) for p in paths]
+
+
+def load_sample(path: str | Path) -> dict:
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in ("image", "depth", "normals", "K")}
+    except (OSError, KeyError, ValueError) as e:
+        raise ValueError(f"{path}: not a training sample ({e})") from None
+
+
+# -- augmentation ------------------------------------------------------------------------
+def random_zoom_crop(s: dict, rng: np.random.Generator, out_h: int, out_w: int,
+                     min_zoom: float = 1.0) -> dict:
+    """Crop a random window and resize it to (out_h, out_w); K follows exactly."""
+    h, w = s["depth"].shape
+    zmax = min(h / out_h, w / out_w)
+    scale = rng.uniform(min(min_zoom, zmax), zmax)  # source pixels per output pixel
+    ch, cw = out_h * scale, out_w * scale
+    y0, x0 = rng.uniform(0, h - ch), rng.uniform(0, w - cw)
+    a = np.array([[1 / scale, 0, -x0 / scale], [0, 1 / scale, -y0 / scale]])
+    # COLMAP convention: continuous coords; output pixel centre (j+.5) <- source x0+(j+.5)*s.
+    # cv2 uses centre-at-0: x_cv = x - 0.5 on both sides.
+    a_cv = a.copy()
+    a_cv[:, 2] += a[:, :2].sum(1) * 0.5 - 0.5
+    warp = dict(dsize=(out_w, out_h), borderMode=cv2.BORDER_REPLICATE)
+    out = {"image": cv2.warpAffine(s["image"], a_cv, flags=cv2.INTER_AREA if scale > 1.3
+                                   else cv2.INTER_LINEAR, **warp),
+           "depth": cv2.warpAffine(s["depth"], a_cv, flags=cv2.INTER_NEAREST, **warp),
+           "normals": cv2.warpAffine(s["normals"].astype(np.float32), a_cv,
+                                     flags=cv2.INTER_NEAREST, **warp)}
+    K = np.array(s["K"], np.float64).copy()
+    K[:2] = np.concatenate([a[:, :2] @ K[:2, :2], (a[:, :2] @ K[:2, 2:] + a[:, 2:])], 1)
+    out["K"] = K
+    return out
+
+
+def hflip(s: dict) -> dict:
+    w = s["depth"].shape[1]
+    n = s["normals"][:, ::-1].copy()
+    n[..., 0] *= -1
+    K = s["K"].copy()
+    K[0, 2] = w - K[0, 2]
+    return {"image": s["image"][:, ::-1].copy(), "depth": s["depth"][:, ::-1].copy(),
+            "normals": n, "K": K}
+
+
+def photometric(image: np.ndarray, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Heavy photometric augmentation of a uint8 RGB image (uses depth only for haze)."""
+    x = image.astype(np.float32) / 255.0
+    if rng.random() < 0.3:  # haze: x * t + A (1 - t), t = exp(-beta z); sky fully hazed
+        z = np.where(depth > 0, depth, np.inf)
+        zm = np.median(depth[depth > 0]) if (depth > 0).any() else 10.0
+        beta = -np.log(rng.uniform(0.5, 0.95)) / max(zm, 1e-3)
+        t = np.exp(-beta * z)[..., None]
+        sky = (depth <= 0)[..., None]
+        air = rng.uniform(0.6, 1.0) * rng.uniform(0.9, 1.0, 3)
+        x = np.where(sky, x, x * t + air * (1 - t))
+    x = x * rng.uniform(0.5, 1.6)  # exposure
+    x = x * rng.uniform(0.85, 1.15, 3)  # white balance / colour
+    grey = x.mean(-1, keepdims=True)
+    sat = 0.0 if rng.random() < 0.1 else rng.uniform(0.5, 1.5)
+    x = grey + (x - grey) * sat
+    x = np.clip(x, 0, 1) ** rng.uniform(0.7, 1.4)  # gamma
+    if rng.random() < 0.3:  # vignetting
+        h, w = x.shape[:2]
+        yy, xx = np.mgrid[:h, :w]
+        r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w * w / 4 + h * h / 4)
+        x = x * (1 - rng.uniform(0, 0.4) * r2)[..., None]
+    if rng.random() < 0.5:
+        x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, 1.5))
+    if rng.random() < 0.7:
+        x = x + rng.normal(0, rng.uniform(0.003, 0.04), x.shape).astype(np.float32)
+    out = np.clip(x * 255 + 0.5, 0, 255).astype(np.uint8)
+    if rng.random() < 0.5:
+        ok, buf = cv2.imencode(".jpg", out[..., ::-1],
+                               [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(25, 96))])
+        out = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+    return np.ascontiguousarray(out)
+
+
+def normalise(image: np.ndarray) -> np.ndarray:
+    """uint8 (H, W, 3) RGB -> float32 (3, H, W) as the network expects."""
+    return (image.astype(np.float32).transpose(2, 0, 1) / 128.0 - 127.0 / 128.0)
+
+
+def augment(s: dict, rng: np.random.Generator, out_h: int, out_w: int,
+            photometric_aug: bool = True) -> dict:
+    s = random_zoom_crop(s, rng, out_h, out_w)
+    if rng.random() < 0.5:
+        s = hflip(s)
+    img = photometric(s["image"], s["depth"], rng) if photometric_aug else s["image"]
+    return {"image": normalise(img), "depth": s["depth"][None].astype(np.float32),
+            "normals": np.ascontiguousarray(s["normals"].transpose(2, 0, 1), np.float32),
+            "K": s["K"].astype(np.float32)}
+
+
+class PoolDataset:
+    """Map-style dataset over pool files (loaded once into memory), augmented per item.
+
+    ``__len__`` is ``length`` (items are drawn at random from the pool); the randomness of
+    item ``i`` depends only on (seed, epoch, i), so a run is reproducible from its seed."""
+
+    def __init__(self, paths, out_h: int, out_w: int, seed: int = 0, length: int = 10 ** 7,
+                 photometric_aug: bool = True):
+        import torch  # noqa: F401  (torch tensors returned)
+
+        self.samples = [load_sample(p) for p in paths]
+        if not self.samples:
+            raise ValueError("PoolDataset: no training samples")
+        self.out_h, self.out_w, self.seed, self.length = out_h, out_w, seed, length
+        self.photometric_aug = photometric_aug
+
+    def __len__(self):
+        return self.length
+
+    def __getitem__(self, i):
+        import torch
+
+        rng = np.random.default_rng([self.seed, i])
+        s = self.samples[rng.integers(len(self.samples))]
+        a = augment(s, rng, self.out_h, self.out_w, self.photometric_aug)
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in a.items()}

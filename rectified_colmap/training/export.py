@@ -1,0 +1,74 @@
+"""Export a trained DepthNet to ONNX with the rectified_colmap contract metadata.
+
+Uses ``scripts/export_depth_onnx.py`` (the project's exporter: opset 17, dynamic H/W,
+optional fp16, onnxruntime verification) when it is present, else exports directly with
+torch.onnx and :func:`rectified_colmap.depth.contract.attach_metadata`.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+from pathlib import Path
+
+from ..depth.contract import ModelSpec, attach_metadata
+from .model import INPUT_MEAN, INPUT_SCALE, INPUT_STD
+
+logger = logging.getLogger(__name__)
+
+MODEL_NAME = "rectsift-depth-lite0"
+EXPORTER = Path(__file__).resolve().parents[2] / "scripts" / "export_depth_onnx.py"
+
+
+def model_spec(max_side: int = 384, description: str = "") -> ModelSpec:
+    return ModelSpec(
+        input_name="image", output_name="depth", layout="NCHW", color="RGB",
+        scale=INPUT_SCALE, mean=list(INPUT_MEAN), std=list(INPUT_STD),
+        resize={"mode": "keep_aspect", "max_side": int(max_side), "multiple_of": 32},
+        output="depth", name=MODEL_NAME,
+        licence="Apache-2.0 (encoder: EfficientNet-Lite0 ImageNet weights, Apache-2.0); "
+                "trained by rectified_colmap on procedural renders",
+        description=description or "EfficientNet-Lite0 + fusion decoder, trained on "
+        "synthetic street scenes; positive z-depth up to scale, for normals and planes")
+
+
+def _exporter():
+    if not EXPORTER.is_file():
+        return None
+    spec = importlib.util.spec_from_file_location("export_depth_onnx", EXPORTER)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def export_onnx(model, output: str | Path, spec: ModelSpec | None = None, height: int = 256,
+                width: int = 320, fp16: bool = False, verify: bool = True) -> dict:
+    """Write ``model`` (eval mode, positive depth output) to ``output``; returns the
+    onnxruntime-vs-torch errors when verified."""
+    import onnx
+    import torch
+
+    spec = spec or model_spec()
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    was_training = model.training
+    model.eval()
+    try:
+        mod = _exporter()
+        if mod is not None:
+            return mod.export_depth_onnx(model, output, spec, height=height, width=width,
+                                         dynamic=True, fp16=fp16, verify=verify)
+        tmp = output.with_suffix(".raw.onnx")
+        x = torch.randn(1, 3, height, width)
+        torch.onnx.export(model, (x,), str(tmp), opset_version=17, input_names=["image"],
+                          output_names=["depth"], do_constant_folding=True, dynamo=False,
+                          dynamic_axes={"image": {0: "batch", 2: "height", 3: "width"},
+                                        "depth": {0: "batch", 2: "out_height",
+                                                  3: "out_width"}})
+        proto = onnx.load(str(tmp))
+        tmp.unlink()
+        attach_metadata(proto, spec)
+        onnx.save(proto, str(output))
+        return {}
+    finally:
+        model.train(was_training)

@@ -1,0 +1,56 @@
+"""Training loop pieces: optimiser, schedule, one step, checkpoints (torch)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import torch
+
+from .losses import total_loss
+
+logger = logging.getLogger(__name__)
+
+
+def make_optimizer(model, lr: float, encoder_lr_factor: float = 0.5,
+                   weight_decay: float = 1e-4) -> torch.optim.Optimizer:
+    enc = list(model.encoder.parameters())
+    ids = {id(p) for p in enc}
+    rest = [p for p in model.parameters() if id(p) not in ids]
+    return torch.optim.AdamW([{"params": enc, "lr": lr * encoder_lr_factor, "base": encoder_lr_factor},
+                              {"params": rest, "lr": lr, "base": 1.0}],
+                             lr=lr, weight_decay=weight_decay)
+
+
+def lr_factor(progress: float, warmup: float = 0.03) -> float:
+    """Linear warm-up then cosine decay to 5 %, for progress in [0, 1]."""
+    if progress < warmup:
+        return max(progress / warmup, 0.02)
+    t = min((progress - warmup) / (1 - warmup), 1.0)
+    return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * t))
+
+
+def set_lr(opt, lr: float) -> None:
+    for g in opt.param_groups:
+        g["lr"] = lr * g.get("base", 1.0)
+
+
+def train_step(model, batch: dict, opt, weights: dict | None = None) -> tuple[float, dict]:
+    model.train()
+    pred_log = model.forward_log(batch["image"])
+    loss, parts = total_loss(pred_log, batch, **(weights or {}))
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+    opt.step()
+    return float(loss.detach()), parts
+
+
+def save_checkpoint(path: str | Path, model, opt, step: int, width: int, extra: dict | None = None):
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": step,
+                "width": width, **(extra or {})}, tmp)
+    tmp.replace(path)

@@ -1,0 +1,152 @@
+#!/usr/bin/env python
+"""Train the embedded default depth network (DepthNet, EfficientNet-Lite0) on procedural
+street renders, on CPU, and export it to ONNX with the rectified_colmap contract.
+
+    python scripts/train_depth.py --out /tmp/rectsift_train --steps 3000 --time_budget 55 \
+        --export_to rectified_colmap/models/rectsift-depth-lite0.onnx
+
+Stages: (1) render (or reuse) a pool of views into ``--pool_dir`` (one .npz per seed);
+(2) train with random zoom-crops, flips and heavy photometric augmentation; the learning
+rate follows warm-up + cosine over ``progress = max(step / steps, elapsed / time_budget)``
+(``--time_budget 0``: steps only, fully reproducible from ``--seed``); (3) checkpoint
+``out/last.pt`` every ``--ckpt_every`` steps and export ONNX every ``--export_every``
+minutes and at the end. See docs/training.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import random
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+logger = logging.getLogger("train_depth")
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--time_budget", type=float, default=0.0,
+                   help="minutes of training (0: no limit; the schedule then uses steps only)")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--height", type=int, default=192)
+    p.add_argument("--width", type=int, default=256)
+    p.add_argument("--lr", type=float, default=4e-4)
+    p.add_argument("--decoder_width", type=int, default=64)
+    p.add_argument("--no_pretrained", action="store_true")
+    p.add_argument("--out", type=Path, required=True, help="checkpoints, logs, ONNX")
+    p.add_argument("--pool_dir", type=Path, default=Path("/tmp/rectsift_pool"))
+    p.add_argument("--pool_size", type=int, default=1500)
+    p.add_argument("--render_width", type=int, default=320)
+    p.add_argument("--render_height", type=int, default=240)
+    p.add_argument("--render_processes", type=int, default=2)
+    p.add_argument("--texture_dir", type=Path, default=None,
+                   help="folder of facade photos used as wall textures (optional)")
+    p.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    p.add_argument("--workers", type=int, default=1, help="DataLoader workers")
+    p.add_argument("--log_every", type=int, default=20)
+    p.add_argument("--ckpt_every", type=int, default=100)
+    p.add_argument("--export_every", type=float, default=15.0, help="minutes")
+    p.add_argument("--export_to", type=Path, default=None, help="ONNX path (default out/)")
+    p.add_argument("--export_max_side", type=int, default=384)
+    p.add_argument("--fp16", action="store_true", help="export fp16 weights")
+    p.add_argument("--resume", action="store_true", help="continue from out/last.pt")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s",
+                        handlers=[logging.StreamHandler(),
+                                  logging.FileHandler(args.out / "train.log")])
+    import torch
+
+    from rectified_colmap.training.data import PoolDataset, render_pool
+    from rectified_colmap.training.export import export_onnx, model_spec
+    from rectified_colmap.training.model import build_model
+    from rectified_colmap.training.train import (lr_factor, make_optimizer, save_checkpoint,
+                                                 set_lr, train_step)
+
+    torch.set_num_threads(args.threads)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    (args.out / "args.json").write_text(json.dumps(vars(args), default=str, indent=1))
+    export_to = args.export_to or args.out / "rectsift-depth-lite0.onnx"
+
+    t0 = time.time()
+    seeds = range(args.seed * 1_000_000, args.seed * 1_000_000 + args.pool_size)
+    paths = render_pool(args.pool_dir, seeds, args.render_width, args.render_height,
+                        args.texture_dir, args.render_processes)
+    logger.info("pool: %d views in %s (%.0f s)", len(paths), args.pool_dir, time.time() - t0)
+
+    ds = PoolDataset(paths, args.height, args.width, seed=args.seed,
+                     length=args.steps * args.batch)
+    model = build_model(pretrained=not args.no_pretrained, width=args.decoder_width)
+    opt = make_optimizer(model, args.lr)
+    start = 0
+    if args.resume and (args.out / "last.pt").is_file():
+        ck = torch.load(args.out / "last.pt", map_location="cpu", weights_only=False)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["opt"])
+        start = ck["step"]
+        logger.info("resumed from step %d", start)
+    sampler = range(start * args.batch, args.steps * args.batch)
+    loader = torch.utils.data.DataLoader(ds, batch_size=args.batch, sampler=sampler,
+                                         num_workers=args.workers, drop_last=True,
+                                         persistent_workers=args.workers > 0,
+                                         prefetch_factor=4 if args.workers else None)
+    spec = model_spec(args.export_max_side)
+
+    def export(tag):
+        te = time.time()
+        errs = export_onnx(model, export_to, spec, height=256, width=320, fp16=args.fp16)
+        logger.info("exported %s to %s (%s, %.0f s) %s", tag, export_to,
+                    f"{export_to.stat().st_size / 1e6:.1f} MB", time.time() - te, errs)
+
+    t_train = time.time()
+    t_export = t_train
+    step = start
+    running = {}
+    for batch in loader:
+        elapsed = time.time() - t_train
+        progress = step / args.steps
+        if args.time_budget > 0:
+            progress = max(progress, elapsed / (args.time_budget * 60))
+        if progress >= 1.0:
+            logger.info("time budget reached at step %d", step)
+            break
+        set_lr(opt, args.lr * lr_factor(progress))
+        loss, parts = train_step(model, batch, opt)
+        step += 1
+        for k, v in {"loss": loss, **parts}.items():
+            running[k] = running.get(k, 0.0) + v
+        if step % args.log_every == 0:
+            n = args.log_every
+            logger.info("step %d  %s  lr %.2e  %.2f s/step  progress %.3f", step,
+                        "  ".join(f"{k} {v / n:.4f}" for k, v in running.items()),
+                        opt.param_groups[1]["lr"], (time.time() - t_train) / (step - start),
+                        progress)
+            running = {}
+        if step % args.ckpt_every == 0:
+            save_checkpoint(args.out / "last.pt", model, opt, step, args.decoder_width)
+        if time.time() - t_export > args.export_every * 60:
+            export(f"step {step}")
+            t_export = time.time()
+    save_checkpoint(args.out / "last.pt", model, opt, step, args.decoder_width)
+    export(f"final (step {step})")
+    logger.info("done: %d steps, %.1f min training", step, (time.time() - t_train) / 60)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

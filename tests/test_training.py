@@ -1,0 +1,174 @@
+"""Tests of rectified_colmap.training (needs torch: skipped without it)."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from rectified_colmap.training import losses  # noqa: E402
+from rectified_colmap.training.data import augment, hflip, normalise, random_zoom_crop  # noqa: E402
+from rectified_colmap.training.model import DepthNet, build_model, pretrained_weights_path  # noqa: E402
+from rectified_colmap.training.render import random_sample  # noqa: E402
+from rectified_colmap.training.train import lr_factor, make_optimizer, train_step  # noqa: E402
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def renders():
+    return [random_sample(s, 96, 64, None, supersample=1) for s in (11, 12)]
+
+
+def _batch(samples, dtype=torch.float32):
+    return {"image": torch.stack([torch.from_numpy(normalise(s["image"])) for s in samples]),
+            "depth": torch.stack([torch.from_numpy(s["depth"])[None] for s in samples]).to(dtype),
+            "normals": torch.stack([torch.from_numpy(np.asarray(s["normals"], np.float32))
+                                    .permute(2, 0, 1) for s in samples]).to(dtype),
+            "K": torch.stack([torch.from_numpy(np.asarray(s["K"]))
+                              for s in samples]).to(dtype)}
+
+
+def _plane_normals_from_depth(depth, K):
+    """Normals by central differences (numpy, float64) of back-projected points."""
+    h, w = depth.shape
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    X = np.stack([(jj - K[0, 2]) / K[0, 0] * depth, (ii - K[1, 2]) / K[1, 1] * depth, depth], -1)
+    n = np.cross(X[2:, 1:-1] - X[:-2, 1:-1], X[1:-1, 2:] - X[1:-1, :-2])
+    return n / np.linalg.norm(n, axis=-1, keepdims=True).clip(1e-12)
+
+
+# -- model --------------------------------------------------------------------------------
+@pytest.mark.parametrize("hw", [(64, 96), (96, 64), (32, 160)])
+def test_forward_shapes_positive(hw):
+    net = DepthNet(width=16).eval()
+    x = torch.randn(2, 3, *hw)
+    with torch.no_grad():
+        y = net(x)
+        y_log = net.forward_log(x)
+    assert y.shape == (2, 1, *hw) and y_log.shape == (2, 1, *hw)
+    assert torch.all(y > 0) and torch.isfinite(y).all()
+    # forward = exp(log-depth) normalised to log-mean 0: same depth up to scale
+    ratio = (y / torch.exp(y_log)).flatten(1)
+    assert torch.allclose(ratio, ratio[:, :1].expand_as(ratio), rtol=1e-4)
+
+
+def test_pretrained_encoder_weights_loaded():
+    net = build_model(pretrained=True, width=16)
+    state = torch.load(pretrained_weights_path(), map_location="cpu", weights_only=True)
+    assert torch.equal(net.encoder._conv_stem.weight, state["_conv_stem.weight"])
+    assert torch.equal(net.encoder._blocks[15]._project_conv.weight,
+                       state["_blocks.15._project_conv.weight"])
+
+
+# -- losses -------------------------------------------------------------------------------
+def test_losses_zero_for_perfect_and_scale_invariant(renders):
+    b = _batch(renders, torch.float64)
+    d = b["depth"]
+    perfect = torch.log(torch.where(d > 0, d, torch.ones_like(d)))
+    for shift in (0.0, 2.5, -1.0):
+        loss, parts = losses.total_loss(perfect + shift, b)
+        assert parts["si"] < 1e-12 and parts["grad"] < 1e-9, parts
+        assert parts["normal"] < 1e-7, parts
+    noisy = perfect + 0.05 * torch.randn_like(perfect)
+    _, p2 = losses.total_loss(noisy, b)
+    assert p2["si"] > 1e-4 and p2["grad"] > 1e-3 and p2["normal"] > 1e-3
+    # a wrong *shape* (not scale) of the depth is penalised
+    tilted = perfect + 0.3 * torch.linspace(0, 1, d.shape[-1], dtype=d.dtype)
+    _, p3 = losses.total_loss(tilted, b)
+    assert p3["si"] > 1e-3 and p3["normal"] > 1e-3
+
+
+def test_normals_from_known_plane():
+    # plane n . X = -1 with n toward the camera; z = -1 / (n . ray)
+    n = np.array([0.3, -0.4, -0.8])
+    n /= np.linalg.norm(n)
+    K = np.array([[80.0, 0, 50], [0, 80, 30], [0, 0, 1]])
+    h, w = 60, 100
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1)
+    z = -1.0 / (rays @ n)
+    assert np.all(z > 0)
+    got = losses.normals_from_log_depth(torch.from_numpy(np.log(z))[None, None],
+                                        torch.from_numpy(K)[None])
+    assert torch.allclose(got[0].permute(1, 2, 0), torch.from_numpy(n).expand(h - 2, w - 2, 3),
+                          atol=1e-9)
+
+
+# -- renderer and augmentation ------------------------------------------------------------
+def test_render_depth_normals_consistent(renders):
+    for s in renders:
+        d, n, K = s["depth"].astype(np.float64), s["normals"], s["K"]
+        assert s["image"].shape == d.shape + (3,) and s["image"].dtype == np.uint8
+        valid = d > 0
+        assert valid.mean() > 0.3
+        assert np.allclose(np.linalg.norm(n[valid], axis=-1), 1, atol=1e-5)
+        est = _plane_normals_from_depth(d, K)
+        cos = (est * n[1:-1, 1:-1]).sum(-1)[valid[1:-1, 1:-1]]
+        assert np.median(cos) > 0.9999  # exact planes, exact K, normals toward camera
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_augmentation_keeps_geometry(renders, flip):
+    rng = np.random.default_rng(3)
+    s = dict(renders[0])
+    s["normals"] = s["normals"].astype(np.float16)
+    c = random_zoom_crop(s, rng, 48, 64, min_zoom=1.0)
+    if flip:
+        c = hflip(c)
+    est = _plane_normals_from_depth(c["depth"].astype(np.float64), c["K"])
+    valid = c["depth"][1:-1, 1:-1] > 0
+    cos = (est * c["normals"][1:-1, 1:-1]).sum(-1)[valid]
+    assert np.median(cos) > 0.99
+    a = augment(s, rng, 48, 64)
+    assert a["image"].shape == (3, 48, 64) and a["image"].dtype == np.float32
+    assert a["depth"].shape == (1, 48, 64) and a["normals"].shape == (3, 48, 64)
+    assert -1.0 <= a["image"].min() and a["image"].max() <= 1.0
+
+
+# -- training and export ------------------------------------------------------------------
+def test_training_steps_decrease_loss(renders):
+    torch.manual_seed(0)
+    net = DepthNet(width=16)
+    opt = make_optimizer(net, 2e-3, encoder_lr_factor=1.0)
+    b = _batch(renders)
+    losses_seen = [train_step(net, b, opt)[0] for _ in range(8)]
+    assert all(np.isfinite(losses_seen))
+    assert min(losses_seen[-3:]) < losses_seen[0]
+    assert lr_factor(0.0) < lr_factor(0.05) and lr_factor(1.0) < lr_factor(0.5)
+
+
+def test_export_onnx_matches_torch(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from rectified_colmap.depth.contract import ModelSpec
+    from rectified_colmap.training.export import export_onnx, model_spec
+
+    torch.manual_seed(0)
+    net = DepthNet(width=16).eval()
+    path = tmp_path / "m.onnx"
+    export_onnx(net, path, model_spec(), height=64, width=96, verify=False)
+    spec = ModelSpec.from_onnx(path)
+    assert spec.output == "depth" and spec.color == "RGB" and spec.layout == "NCHW"
+    assert spec.resize == {"mode": "keep_aspect", "max_side": 384, "multiple_of": 32}
+    assert np.isclose(spec.scale, 1 / 128) and np.allclose(spec.mean, 127 / 128)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    x = torch.randn(1, 3, 96, 128)  # another size than the export example: dynamic axes
+    (out,) = sess.run(["depth"], {"image": x.numpy()})
+    with torch.no_grad():
+        ref = net(x).numpy()
+    assert out.shape == (1, 1, 96, 128)
+    np.testing.assert_allclose(out, ref, rtol=1e-3, atol=1e-5)
+
+
+def test_evaluation_helpers(renders):
+    from rectified_colmap.training.evaluate import direction_error, planar_mask
+
+    s = renders[0]
+    R = s["R"]
+    assert direction_error(R, R) < 1e-6
+    assert direction_error(-R[[2, 0, 1]], R) < 1e-6  # order and sign free
+    c, sn = np.cos(0.1), np.sin(0.1)
+    tilted = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ R
+    assert abs(direction_error(tilted, R) - np.degrees(0.1) * 2 / 3) < 1e-6
+    m = planar_mask(s["normals"], s["depth"])
+    assert m.any() and not m[s["depth"] <= 0].any()
