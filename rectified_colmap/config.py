@@ -36,11 +36,11 @@ class PlaneConf:
     """A pixel joins a direction when its normal is within this angle of it (or its antipode)."""
     min_area_frac: float = 0.005
     """Connected components smaller than this fraction of the image are dropped."""
-    num_samples: int = 20000
+    num_samples: int = 8000
     """Normals subsampled for fitting the three directions."""
-    num_restarts: int = 8
+    num_restarts: int = 4
     """Initialisations of the orthogonal k-means (best inlier count wins)."""
-    num_iters: int = 20
+    num_iters: int = 15
     inlier_angle_deg: float = 15.0
     """Normals further than this from every axis are outliers while fitting."""
     opening_radius: int = 1
