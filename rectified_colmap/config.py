@@ -61,7 +61,7 @@ class RectifyConf:
     """Cap on the side of a rectified patch (pixels)."""
     max_patch_area_factor: float = 1.0
     """Cap on the rectified area of a patch, as a multiple of its area in the original image."""
-    max_total_area_factor: float = 1.0
+    max_total_area_factor: float = 0.8
     """Budget on the summed size (w x h) of all rectified patches of an image, as a multiple
     of the image's area; patches are scaled down together when over it (bounds the cost of
     SIFT in patches to about that of plain SIFT on the image)."""

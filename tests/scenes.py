@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pycolmap
 
 from rectified_colmap import synth
 from rectified_colmap.eval.pairs import Pair
@@ -24,12 +25,18 @@ def street_pair(seed: int, min_deg: float = 50, max_deg: float = 90, width: int 
     return _view(scene, camera, p0), _view(scene, camera, p1)
 
 
-def street_orbit(seed: int, num: int = 6, width: int = 480, height: int = 360):
-    """A walk along a street (an SfM sequence)."""
+def street_orbit(seed: int, num: int = 6, width: int = 480, height: int = 360,
+                 pitch_down_deg: float = 12.0):
+    """A walk along a street (an SfM sequence), pitched down so that the ground is in view
+    beside the facades (a single plane is a degenerate scene for SfM initialisation)."""
     rng = np.random.default_rng(seed)
     scene = synth.street(rng)
     camera = synth.pinhole_camera(width, height, 0.7 * width)
-    return [_view(scene, camera, pose) for pose in synth.view_orbit(scene, num, rng, camera=camera)]
+    a = -np.deg2rad(pitch_down_deg)  # new optical axis = cos(a) z - sin(a) y: toward +y (down)
+    tilt = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array(
+        [[1, 0, 0], [0, np.cos(a), np.sin(a)], [0, -np.sin(a), np.cos(a)]])), np.zeros(3))
+    poses = synth.view_orbit(scene, num, rng, camera=camera)
+    return [_view(scene, camera, tilt * pose) for pose in poses]
 
 
 def to_pair(view0, view1, name0: str = "0", name1: str = "1") -> Pair:

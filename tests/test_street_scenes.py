@@ -69,7 +69,9 @@ def test_cli_database_is_mapped_by_pycolmap(tmp_path):
                  "--camera_model", "PINHOLE", "--single_camera",
                  "--camera_params", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
                  "--no_progress"]) == 0
-    pycolmap.match_exhaustive(db)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1  # deterministic
+    pycolmap.match_exhaustive(db, matching_options=matching)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = 1
     opts.random_seed = 0
