@@ -31,6 +31,7 @@ def render_walk(out_dir: Path, num_images: int = 8, width: int = 640, height: in
     out_dir.mkdir(parents=True, exist_ok=True)
     names, poses = [], {}
     for i, pose in enumerate(synth.view_orbit(scene, num_images, rng, camera=camera)):
+        pose = synth.pitched(pose, 12.0)  # ground and facades: no single-plane degeneracy
         name = f"street_{i:03d}.png"
         cv2.imwrite(str(out_dir / name), synth.render(scene, camera, pose).image[..., ::-1])
         names.append(name)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pycolmap
 
 from rectified_colmap import synth
 from rectified_colmap.eval.pairs import Pair
@@ -32,11 +31,8 @@ def street_orbit(seed: int, num: int = 6, width: int = 480, height: int = 360,
     rng = np.random.default_rng(seed)
     scene = synth.street(rng)
     camera = synth.pinhole_camera(width, height, 0.7 * width)
-    a = -np.deg2rad(pitch_down_deg)  # new optical axis = cos(a) z - sin(a) y: toward +y (down)
-    tilt = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array(
-        [[1, 0, 0], [0, np.cos(a), np.sin(a)], [0, -np.sin(a), np.cos(a)]])), np.zeros(3))
     poses = synth.view_orbit(scene, num, rng, camera=camera)
-    return [_view(scene, camera, tilt * pose) for pose in poses]
+    return [_view(scene, camera, synth.pitched(p, pitch_down_deg)) for p in poses]
 
 
 def to_pair(view0, view1, name0: str = "0", name1: str = "1") -> Pair:

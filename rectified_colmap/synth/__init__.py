@@ -39,7 +39,8 @@ from .render import RenderResult, cast, raycast, render
 from .scene import KIND_NAMES, Scene, corner, rubble, square, street
 from .textures import make_texture
 from .views import (angle_between_views, backproject, camera_center, covisible,
-                    covisible_fraction, look_at, pinhole_camera, random_camera, random_view,
+                    covisible_fraction, look_at, pinhole_camera, pitched, random_camera,
+                    random_view,
                     relative_pose, relative_T, reproject, view_orbit, view_pair,
                     viewing_direction)
 
@@ -65,6 +66,6 @@ def random_sample(rng: np.random.Generator, width: int = 256, height: int = 192,
 
 __all__ = ["RenderResult", "Scene", "KIND_NAMES", "angle_between_views", "backproject",
            "camera_center", "cast", "corner", "covisible", "covisible_fraction", "look_at",
-           "make_texture", "pinhole_camera", "random_camera", "random_sample", "random_scene",
+           "make_texture", "pinhole_camera", "pitched", "random_camera", "random_sample", "random_scene",
            "random_view", "raycast", "relative_T", "relative_pose", "render", "reproject",
            "rubble", "square", "street", "view_orbit", "view_pair", "viewing_direction"]

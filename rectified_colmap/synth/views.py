@@ -336,3 +336,10 @@ def covisible_fraction(r0: RenderResult, r1: RenderResult, rel_tol: float = 0.01
     if not valid.any():
         return 0.0
     return float(covisible(r0, r1, rel_tol)[valid].mean())
+
+
+def pitched(cam_from_world: pycolmap.Rigid3d, down_deg: float) -> pycolmap.Rigid3d:
+    """The same camera tilted down by ``down_deg`` about its own x axis (y is down)."""
+    a = np.deg2rad(down_deg)
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(tilt), np.zeros(3)) * cam_from_world
