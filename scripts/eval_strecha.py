@@ -22,6 +22,7 @@ Example (plain SIFT only)::
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import shlex
 import sys
@@ -64,7 +65,9 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
         kw = dict(conf={"planes": {"min_area_frac": 2.0}, "sift": sift}, depth_model="none")
     else:
         depth_model = args.depth_model or DEFAULT_DEPTH_MODEL
-        kw = dict(conf={"sift": sift}, depth_model=depth_model, depth_path=args.depth_path)
+        overrides = json.loads(args.rect_conf) if args.rect_conf else {}
+        conf = {**overrides, "sift": {**overrides.get("sift", {}), **sift}}
+        kw = dict(conf=conf, depth_model=depth_model, depth_path=args.depth_path)
     t = time.perf_counter()
     summary = extract(scene, hloc_features=h5, image_list=names, camera_model=model,
                       camera_params=params, num_workers=args.num_workers,
@@ -86,6 +89,9 @@ def main(argv=None) -> int:
     p.add_argument("--depth_path", type=Path, help="folder of depth maps for rectsift")
     p.add_argument("--max_num_features", type=int, default=None,
                    help="SIFT budget per image for both methods (default 8192)")
+    p.add_argument("--rect_conf", default=None,
+                   help='JSON overrides of the extraction conf for rectsift, e.g. '
+                        '\'{"rectify": {"keep_plain": false}}\'')
     p.add_argument("--bin_deg", type=float, default=10.0)
     p.add_argument("--ransac_max_error", type=float, default=None)
     p.add_argument("--num_workers", type=int, default=2)
