@@ -146,6 +146,19 @@ class VpConf:
     patch_min_inplane_frac: float = 0.6
     """check_patch: min length fraction of the patch's segments whose VP lies in the plane."""
     seed: int = 0
+    drop_contradicted: bool = False
+    """Drop the patches of a depth direction that a confident frame axis contradicts (else
+    they keep their depth normal). On rendered streets, clutter-only views (cobblestones)
+    can yield a false confident frame: dropping then removed every patch."""
+    depth_free: bool = False
+    """Images without depth get planes from lines alone (vp.depth_free_planes): each frame
+    axis is the normal of the regions where segments of BOTH other VPs are dense."""
+    support_radius_frac: float = 0.06
+    """Depth-free regions: segment density is averaged over a square window of this
+    half-side (fraction of the work grid's max side)..."""
+    support_min_lines: float = 0.5
+    """...and a cell needs, for each of the two in-plane VPs, at least this many
+    window-crossing lengths of its segments in the window."""
 
 
 @dataclass

@@ -108,9 +108,11 @@ def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: Extr
 def orient_with_vanishing_points(gray: np.ndarray, camera: pycolmap.Camera,
                                  planes: PlaneResult, conf: ExtractConf,
                                  rng: np.random.Generator) -> PlaneResult:
-    """Depth says WHICH pixels form planes, lines say HOW they are oriented: each patch of a
-    direction that snapped to a trusted vanishing direction takes that direction (with the
-    patch's sign); patches of a direction the lines contradict are dropped."""
+    """Depth says WHICH pixels form planes, lines say HOW they are oriented: when a direction
+    snapped to a trusted vanishing direction, each patch takes its fused direction (with the
+    patch's sign; unsnapped directions are rotated with the snapped ones); patches of a
+    direction the lines contradict keep their depth normal, or are dropped with
+    conf.vp.drop_contradicted."""
     from .vp import refine_directions
 
     vp = refine_directions(gray, camera, planes.directions, conf.vp, rng=rng)
@@ -120,8 +122,9 @@ def orient_with_vanishing_points(gray: np.ndarray, camera: pycolmap.Camera,
     for patch in planes.patches:
         k = patch.axis
         if vp.contradicted[k]:
-            continue
-        if vp.snapped[k]:
+            if conf.vp.drop_contradicted:
+                continue
+        elif vp.snapped.any():
             d = vp.directions[k]
             patch = replace(patch, normal=d * np.sign(d @ patch.normal))
         patches.append(patch)
@@ -184,29 +187,39 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     total = conf.sift.max_num_features
     t = {}
 
-    if depth is None and normals is None:
+    depth_free = depth is None and normals is None
+    if depth_free and not conf.vp.depth_free:
         return ImageResult(detect_sift(gray, conf.sift, total), timings=t)
 
-    t0 = time.perf_counter()
-    if normals is None:
-        normals = depth_to_normals(depth, camera, conf)
-    t["normals"] = time.perf_counter() - t0
+    if depth_free:  # planes from vanishing points alone (conf.vp.depth_free)
+        from .vp import depth_free_planes
 
-    t0 = time.perf_counter()
-    planes = detect_planes(normals, conf.planes, rng)
-    t["planes"] = time.perf_counter() - t0
-
-    if conf.vp.enabled and planes.directions is not None:
         t0 = time.perf_counter()
-        planes = orient_with_vanishing_points(gray, camera, planes, conf, rng)
+        w, h = work_size(W, H, conf.normals.work_max_size)
+        planes, _ = depth_free_planes(gray, camera, (h, w), conf.vp,
+                                      conf.planes.min_area_frac, rng=rng)
         t["vp"] = time.perf_counter() - t0
+    else:
+        t0 = time.perf_counter()
+        if normals is None:
+            normals = depth_to_normals(depth, camera, conf)
+        t["normals"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        planes = detect_planes(normals, conf.planes, rng)
+        t["planes"] = time.perf_counter() - t0
+
+        if conf.vp.enabled and planes.directions is not None:
+            t0 = time.perf_counter()
+            planes = orient_with_vanishing_points(gray, camera, planes, conf, rng)
+            t["vp"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     min_angle = np.deg2rad(conf.rectify.min_rectify_angle_deg)
     todo = [i for i, patch in enumerate(planes.patches)  # nearly fronto-parallel patches
             if np.arccos(np.clip(-patch.normal[2], -1, 1)) >= min_angle]  # stay plain
     rects = plan_rectifications(camera, planes.patches, todo, conf)
-    cover = viewing_coverage(camera, rects, planes.patches, normals.shape[:2],
+    cover = viewing_coverage(camera, rects, planes.patches, planes.labels.shape,
                              conf.rectify.max_viewing_angle_deg)
     t["homographies"] = time.perf_counter() - t0
     result = ImageResult(Features.empty(), planes, rects, cover, normals, t)

@@ -35,6 +35,10 @@ permutation); a direction snaps when a confident frame axis (sigma <= max_sigma_
 within snap_angle_deg of it, and is contradicted when a confident axis lies further. The
 output stays a rotation: with 2-3 snapped directions it is the matched frame; with one,
 the depth frame rotated minimally onto it; with none, the depth frame unchanged.
+
+Depth-free planes (``depth_free_planes``, conf.depth_free): the confident frame gives the
+directions, and ``line_support_patches`` the patches: a plane with normal F[k] is where
+segments of both other VPs are dense (see its docstring), split by the sign of ray . F[k].
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ import pycolmap
 from . import camera as cam_utils
 from .config import VpConf
 from .conventions import from_opencv_points, to_opencv_points
+from .planes import Patch, PlaneResult
 
 logger = logging.getLogger(__name__)
 
@@ -506,6 +511,88 @@ def check_patch(result: VpResult, mask: np.ndarray, normal: np.ndarray,
     elif num >= conf.patch_min_segments:
         verdict = frac >= conf.patch_min_inplane_frac
     return PatchCheck(num, frac, line_normal, angle, verdict)
+
+
+# -- depth-free planes --------------------------------------------------------------------
+
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """Background components not touching the border become foreground."""
+    n, lab = cv2.connectedComponents((~mask).astype(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    outside = np.zeros(n, bool)
+    outside[border] = True
+    return mask | ~outside[lab]
+
+
+def line_support_patches(result: VpResult, camera: pycolmap.Camera,
+                         work_shape: tuple[int, int], conf: VpConf = VpConf(),
+                         min_area_frac: float = 0.005) -> tuple[list[Patch], np.ndarray]:
+    """Depth-free plane patches from labelled segments -> (patches, labels (h, w) int8).
+
+    A plane with normal F[k] contains the lines of the two other VPs, so its image is where
+    segments of BOTH other families are dense. Per family j, the density D_j is the
+    fraction of cells of a (2r+1)^2 window (r = conf.support_radius_frac x max(h, w))
+    crossed by its segments (rasterised on the work grid); axis k scores
+    min(D_a, D_b) and needs, for both, conf.support_min_lines window-crossing lines
+    (D >= support_min_lines / (2r + 1)). Each cell takes the best axis; the two sides of
+    the axis' vanishing line (sign of ray . F[k]) are separate planes (normal facing the
+    camera). Holes are filled; components under ``min_area_frac`` of the grid are dropped.
+    Labels follow rectified_colmap.planes (2k + s, s = 1 when the normal is -F[k]).
+    ``result`` must carry a confident frame (``result.directions``, e.g. from
+    manhattan_from_image); only axes whose two in-plane VPs are observed get patches."""
+    h, w = work_shape
+    labels = np.full((h, w), -1, np.int8)
+    F, seg = result.directions, result.segments
+    if F is None or len(seg) == 0 or result.manhattan is None:
+        return [], labels
+    observed = result.manhattan.observed
+    r = max(1, int(round(conf.support_radius_frac * max(h, w))))
+    k2 = 2 * r + 1
+    scale = np.array([w / camera.width, h / camera.height])
+    dens = np.zeros((3, h, w), np.float32)
+    for j in np.flatnonzero(observed):
+        xy = seg.xy[seg.labels == j] * scale - 0.5  # COLMAP -> OpenCV pixel centres
+        lines = [p for p in np.round(xy * 16).astype(np.int32)]  # 4 fractional bits
+        m = np.zeros((h, w), np.uint8)
+        cv2.polylines(m, lines, False, 1, 1, cv2.LINE_8, shift=4)
+        dens[j] = cv2.boxFilter(m.astype(np.float32), -1, (k2, k2),
+                                borderType=cv2.BORDER_CONSTANT)
+    score = np.zeros((3, h, w), np.float32)
+    for k in range(3):
+        a, b = (k + 1) % 3, (k + 2) % 3
+        if observed[a] and observed[b]:
+            score[k] = np.minimum(dens[a], dens[b])
+    best = np.argmax(score, 0)
+    valid = score.max(0) >= conf.support_min_lines / k2
+    side = (cam_utils.grid_rays(camera, w, h) @ F.T) > 0  # (h, w, 3): normal is -F[k]
+    patches = []
+    for k in range(3):
+        for s in (0, 1):
+            mask = _fill_holes(valid & (best == k) & (side[..., k] == bool(s)))
+            n, comp, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
+                                                                 connectivity=8)
+            for c in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_frac * h * w) + 1:
+                pm = comp == c
+                labels[pm] = 2 * k + s
+                patches.append(Patch(pm, k, F[k] * (-1.0 if s else 1.0),
+                                     float(pm.mean())))
+    patches.sort(key=lambda p: -p.area_frac)
+    return patches, labels
+
+
+def depth_free_planes(image_gray: np.ndarray, camera: pycolmap.Camera,
+                      work_shape: tuple[int, int], conf: VpConf = VpConf(),
+                      min_area_frac: float = 0.005, gravity: np.ndarray | None = None,
+                      rng: np.random.Generator | None = None
+                      ) -> tuple[PlaneResult, VpResult]:
+    """Depth-free mode: Manhattan frame from lines (manhattan_from_image) + line-support
+    patches -> a planes.PlaneResult on the work grid (no patches, directions None, without
+    a confident frame: the pipeline then falls back to plain SIFT)."""
+    res = manhattan_from_image(image_gray, camera, conf, gravity, rng)
+    patches, labels = line_support_patches(res, camera, work_shape, conf, min_area_frac)
+    areas = np.bincount(labels[labels >= 0] // 2, minlength=3)[:3]
+    support = areas / max(1, labels.size)
+    return PlaneResult(res.directions, support, labels, patches), res
 
 
 # -- visualisation ------------------------------------------------------------------------

@@ -46,6 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--conf", default="rectsift",
                    help="named configuration (rectsift, rectsift-fast, sift) or a JSON file "
                         "of overrides, e.g. {\"rectify\": {\"max_viewing_angle_deg\": 85}}")
+    p.add_argument("--orientation", choices=["depth", "vp", "depth+vp"], default=None,
+                   help="plane orientations from depth normals only (vp.enabled off), "
+                        "depth refined by vanishing points (depth+vp: vp.enabled), or "
+                        "vanishing points also for images without depth (vp: vp.enabled "
+                        "and vp.depth_free; with --depth_model none: lines only). "
+                        "Default: as in --conf")
     p.add_argument("--num_workers", type=int, default=1, help="worker processes")
     p.add_argument("--overwrite", action="store_true",
                    help="re-extract images that already have features")
@@ -81,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
     if bool(args.camera_model) != bool(args.camera_params) and args.camera_params:
         raise SystemExit("--camera_params needs --camera_model")
     conf = _load_conf(args.conf, args.max_num_features)
+    if getattr(args, "orientation", None) is not None:
+        conf.vp.enabled = args.orientation != "depth"
+        conf.vp.depth_free = args.orientation == "vp"
     summary = extract(
         args.image_path, database=args.database, hloc_features=args.hloc_features,
         image_list=args.image_list, depth_path=args.depth_path, depth_kind=args.depth_kind,

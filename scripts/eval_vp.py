@@ -1,0 +1,279 @@
+#!/usr/bin/env python
+"""Vanishing points vs a mediocre depth network on rendered street pairs (docs/vp.md).
+
+Pairs: rectified_colmap.synth street scenes, two views of one facade or ground point whose
+viewing directions are ``--min_deg``-``--max_deg`` apart (synth.view_pair), 480x360,
+focal 0.9 x width, targets alternating facade / ground. Exact depth, normals and poses.
+
+Depth "network" = GT depth corrupted per image, independently in the two views:
+- a smooth tilt of the inverse depth, 1/z' = 1/z + g . (x_n, y_n) with (x_n, y_n) the
+  normalised image coordinates: planes stay planar but every normal rotates (a plane at
+  distance d by ~atan(|g| d)); |g| is drawn so that a plane at the median distance rotates
+  by ``--tilt_deg`` (uniform in the range), direction random;
+- a low-frequency multiplicative field, z' *= 1 + a * f(x, y), f a bicubic upsampling of
+  4x3 uniform noise in [-1, 1], a = ``--field`` (default 0.15: +-15%).
+
+Methods (same SIFT budget): plain SIFT; rectified with GT depth (reference); rectified with
+the corrupted depth; corrupted depth + VP (vp.enabled); VP only (no depth, vp.depth_free).
+Per method: dominant-direction error (each direction to the nearest GT axis = world axes
+in the camera frame; depth-free: the Manhattan frame), patch-normal error (median angle
+between a patch's normal and the GT normals of its pixels, area-weighted over patches),
+pose success (rotation error < 5 deg), GT-correct matches (Sampson < 3 px).
+
+    python scripts/eval_vp.py --num_pairs 12 --output docs/vp_synth.md
+
+``--combine`` merges relative-pose records of several scripts/eval_strecha.py runs (one
+method each, renamed) into one table by rotation bin (the real-photo part of docs/vp.md)::
+
+    python scripts/eval_vp.py --combine "plain SIFT=OUT_net/records.csv:sift" \
+        "network=OUT_net/records.csv:rectsift" "network + VP=OUT_netvp/records.csv:rectsift"
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rectified_colmap import camera as cam_utils
+from rectified_colmap import synth
+from rectified_colmap.config import EvalConf, ExtractConf
+from rectified_colmap.depth import DepthMap
+from rectified_colmap.eval.matching import FeatureSource
+from rectified_colmap.eval.pairs import Pair
+from rectified_colmap.eval.relpose import evaluate_pair
+from rectified_colmap.features import detect_sift
+from rectified_colmap.io.hloc_h5 import rootsift_unit
+from rectified_colmap.pipeline import extract_image
+
+logger = logging.getLogger("eval_vp")
+
+METHODS = ("plain", "rect GT depth", "rect corrupted", "rect corrupted + VP", "VP only")
+
+
+def corrupt_depth(depth: np.ndarray, camera, rng: np.random.Generator,
+                  tilt_deg: tuple[float, float], field: float) -> np.ndarray:
+    """GT z-depth (H, W), NaN = sky -> a plausible mediocre prediction (module docstring)."""
+    H, W = depth.shape
+    rays = cam_utils.grid_rays(camera, W, H)
+    xn, yn = rays[..., 0] / rays[..., 2], rays[..., 1] / rays[..., 2]
+    finite = np.isfinite(depth)
+    dist = np.median(depth[finite])  # ~ distance of the typical plane (fronto-parallel)
+    theta = np.deg2rad(rng.uniform(*tilt_deg))
+    phi = rng.uniform(0, 2 * np.pi)
+    g = np.tan(theta) / dist * np.array([np.cos(phi), np.sin(phi)])
+    inv = 1.0 / depth + g[0] * xn + g[1] * yn
+    z = np.where(inv > 0.2 / depth, 1.0 / np.maximum(inv, 1e-12), np.nan)
+    coarse = rng.uniform(-1, 1, (3, 4)).astype(np.float32)
+    f = cv2.resize(coarse, (W, H), interpolation=cv2.INTER_CUBIC)
+    return (z * (1.0 + field * np.clip(f, -1, 1))).astype(np.float32)
+
+
+def direction_errors(directions: np.ndarray | None, gt_axes: np.ndarray) -> np.ndarray:
+    """(3,) angle of each direction to its nearest GT axis (sign-free), NaN without."""
+    if directions is None:
+        return np.full(3, np.nan)
+    c = np.abs(np.asarray(directions) @ gt_axes.T).max(1)
+    return np.degrees(np.arccos(np.clip(c, -1, 1)))
+
+
+def patch_errors(planes, gt_normals: np.ndarray) -> list[tuple[float, int]]:
+    """(median angle to the GT normals of its pixels, pixels) per patch (work grid)."""
+    if planes is None:
+        return []
+    h, w = planes.labels.shape
+    N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
+    valid = cv2.resize(np.isfinite(gt_normals).all(-1).astype(np.uint8), (w, h),
+                       interpolation=cv2.INTER_NEAREST) > 0
+    out = []
+    for p in planes.patches:
+        m = p.mask & valid
+        if m.sum() < 20:
+            continue
+        ang = np.degrees(np.arccos(np.clip(N[m] @ p.normal, -1, 1)))
+        out.append((float(np.median(ang)), int(m.sum())))
+    return out
+
+
+def make_pairs(num: int, min_deg: float, max_deg: float, width: int, height: int):
+    pairs, seed = [], 0
+    while len(pairs) < num and seed < 10 * num:
+        target = ("facade", "ground")[len(pairs) % 2]
+        rng = np.random.default_rng(1000 + seed)
+        seed += 1
+        scene = synth.street(rng)
+        camera = synth.pinhole_camera(width, height, 0.9 * width)
+        try:
+            p0, p1, _ = synth.view_pair(scene, rng, min_deg, max_deg, target=target,
+                                        camera=camera)
+        except (RuntimeError, ValueError):
+            continue
+        if p0 is None:
+            continue
+        pairs.append((target, camera, [synth.render(scene, camera, p) for p in (p0, p1)],
+                      (p0, p1), rng))
+    return pairs
+
+
+def confs(max_num_features: int) -> dict[str, ExtractConf]:
+    base = ExtractConf()
+    base.sift.max_num_features = max_num_features
+    vp = ExtractConf.from_dict(base.to_dict())
+    vp.vp.enabled = True
+    free = ExtractConf.from_dict(base.to_dict())
+    free.vp.depth_free = True
+    return {"rect GT depth": base, "rect corrupted": base, "rect corrupted + VP": vp,
+            "VP only": free}
+
+
+def run(args) -> str:
+    t0 = time.perf_counter()
+    pairs = make_pairs(args.num_pairs, args.min_deg, args.max_deg, args.width, args.height)
+    cfs = confs(args.max_num_features)
+    eval_conf = EvalConf()
+    records, dir_err, patch_err, coverage, nrect = [], {}, {}, {}, {}
+    for m in METHODS:
+        dir_err[m], patch_err[m], coverage[m], nrect[m] = [], [], [], []
+    for i, (target, camera, renders, poses, rng) in enumerate(pairs):
+        feats = {m: {} for m in METHODS}
+        for j, (r, pose) in enumerate(zip(renders, poses)):
+            name = str(j)
+            gray = cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY)
+            gt_axes = np.asarray(pose.rotation.matrix()).T  # rows: world axes in camera
+            bad = corrupt_depth(r.depth, camera, rng, args.tilt_deg, args.field)
+            for m in METHODS:
+                if m == "plain":
+                    f = detect_sift(gray, cfs["rect GT depth"].sift, args.max_num_features)
+                    res = None
+                else:
+                    depth = {"rect GT depth": DepthMap(r.depth, "metric"),
+                             "VP only": None}.get(m, DepthMap(bad, "metric"))
+                    res = extract_image(r.image, camera, depth, cfs[m],
+                                        np.random.default_rng(i))
+                    f = res.features
+                    dir_err[m].append(direction_errors(res.planes.directions
+                                                       if res.planes else None, gt_axes))
+                    patch_err[m] += patch_errors(res.planes, r.normals)
+                    cov = res.coverage
+                    coverage[m].append(0.0 if cov is None else float((cov >= 0).mean()))
+                    nrect[m].append(len(res.rectifications))
+                feats[m][name] = {"keypoints": f.keypoints,
+                                  "descriptors": rootsift_unit(f.descriptors).T}
+        K = camera.calibration_matrix()
+        pair = Pair(f"{i}/0", f"{i}/1", K, K, synth.relative_T(*poses))
+        srcs = {m: FeatureSource({f"{i}/{k}": v for k, v in fm.items()})
+                for m, fm in feats.items()}
+        recs = evaluate_pair(pair, srcs, eval_conf)
+        for rec in recs:
+            rec["target"] = target
+        records += recs
+        logger.info("pair %d (%s, %.0f deg): %s", i, target, pair.rotation_deg,
+                    ", ".join(f"{r['method']} {r['num_correct']}/{r['success']:d}"
+                              for r in recs))
+    return report(records, dir_err, patch_err, coverage, nrect, args,
+                  time.perf_counter() - t0, len(pairs))
+
+
+def _fmt(x, nd=1):
+    return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}f}"
+
+
+def report(records, dir_err, patch_err, coverage, nrect, args, seconds, num_pairs) -> str:
+    lines = [f"Rendered street pairs: {num_pairs} ({args.width}x{args.height}, "
+             f"{args.min_deg:.0f}-{args.max_deg:.0f} deg apart, facade/ground alternating), "
+             f"corrupted depth: normal tilt {args.tilt_deg[0]:.0f}-{args.tilt_deg[1]:.0f} deg at "
+             f"the median distance + low-frequency field +-{100 * args.field:.0f}%; "
+             f"SIFT budget {args.max_num_features}. {seconds:.0f} s.", "",
+             "| method | directions found (images) | direction error median / p90 (deg) | "
+             "patch-normal error median / p90 (deg, area-weighted) | rectified area % | "
+             "pose success (R err < 5 deg) | GT-correct matches (total / median) |",
+             "|---|---|---|---|---|---|---|"]
+    for m in METHODS:
+        rs = [r for r in records if r["method"] == m]
+        succ = sum(r["success"] for r in rs)
+        corr = [r["num_correct"] for r in rs]
+        if m == "plain":
+            lines.append(f"| {m} | - | - | - | 0 | {succ}/{len(rs)} | {sum(corr)} / "
+                         f"{np.median(corr):.0f} |")
+            continue
+        d = np.array(dir_err[m])
+        found = int(np.isfinite(d).all(1).sum())
+        e = d[np.isfinite(d)]
+        pe = np.array(patch_err[m]) if patch_err[m] else np.zeros((0, 2))
+
+        def wq(q):
+            if len(pe) == 0:
+                return None
+            o = np.argsort(pe[:, 0])
+            c = np.cumsum(pe[o, 1]) / pe[:, 1].sum()
+            return float(pe[o, 0][np.searchsorted(c, q)])
+
+        lines.append(
+            f"| {m} | {found}/{len(d)} | {_fmt(np.median(e) if len(e) else None, 2)} / "
+            f"{_fmt(np.percentile(e, 90) if len(e) else None, 2)} | {_fmt(wq(0.5), 2)} / "
+            f"{_fmt(wq(0.9), 2)} | {100 * np.mean(coverage[m]):.0f} | {succ}/{len(rs)} | "
+            f"{sum(corr)} / {np.median(corr):.0f} |")
+    by_target = ["", "Per target (pose success; GT-correct total):", "",
+                 "| method | " + " | ".join(sorted({r['target'] for r in records})) + " |",
+                 "|---|" + "---|" * len({r['target'] for r in records})]
+    for m in METHODS:
+        cells = []
+        for t in sorted({r["target"] for r in records}):
+            rs = [r for r in records if r["method"] == m and r["target"] == t]
+            cells.append(f"{sum(r['success'] for r in rs)}/{len(rs)}; "
+                         f"{sum(r['num_correct'] for r in rs)}")
+        by_target.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines + by_target) + "\n"
+
+
+def combine(specs: list[str], bin_deg: float = 10.0) -> str:
+    """'LABEL=records.csv:method' ... -> Markdown tables (rectified_colmap.eval.report)."""
+    from rectified_colmap.eval import report as rep
+
+    records = []
+    for spec in specs:
+        label, _, rest = spec.partition("=")
+        path, _, method = rest.rpartition(":")
+        if not label or not path or not Path(path).is_file():
+            raise SystemExit(f"--combine {spec!r}: expected LABEL=records.csv:method "
+                             "with an existing file")
+        recs = [dict(r, method=label) for r in rep.read_csv(path) if r["method"] == method]
+        if not recs:
+            raise SystemExit(f"--combine {spec!r}: no records of method {method!r} in {path}")
+        records += recs
+    c = EvalConf(bin_deg=bin_deg)
+    return rep.markdown_table(records, c.bin_deg, c.auc_thresholds, c.success_deg,
+                              c.min_correct)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--num_pairs", type=int, default=12)
+    p.add_argument("--min_deg", type=float, default=50.0)
+    p.add_argument("--max_deg", type=float, default=90.0)
+    p.add_argument("--width", type=int, default=480)
+    p.add_argument("--height", type=int, default=360)
+    p.add_argument("--tilt_deg", type=float, nargs=2, default=(10.0, 20.0))
+    p.add_argument("--field", type=float, default=0.15)
+    p.add_argument("--max_num_features", type=int, default=8192)
+    p.add_argument("--output", type=Path, help="also write the Markdown table here")
+    p.add_argument("--combine", nargs="+", metavar="LABEL=records.csv:method",
+                   help="only merge eval_strecha records into one table (see above)")
+    p.add_argument("--bin_deg", type=float, default=10.0, help="with --combine")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
+    text = combine(args.combine, args.bin_deg) if args.combine else run(args)
+    print(text)
+    if args.output:
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
