@@ -54,6 +54,7 @@ import pycolmap
 
 from . import camera as cam_utils
 from .config import VpConf
+from .conventions import pixel_centers, to_opencv_points
 from .conventions import from_opencv_points, to_opencv_points
 from .planes import Patch, PlaneResult
 
@@ -551,7 +552,7 @@ def line_support_patches(result: VpResult, camera: pycolmap.Camera,
     scale = np.array([w / camera.width, h / camera.height])
     dens = np.zeros((3, h, w), np.float32)
     for j in np.flatnonzero(observed):
-        xy = seg.xy[seg.labels == j] * scale - 0.5  # COLMAP -> OpenCV pixel centres
+        xy = to_opencv_points(seg.xy[seg.labels == j] * scale)
         lines = [p for p in np.round(xy * 16).astype(np.int32)]  # 4 fractional bits
         m = np.zeros((h, w), np.uint8)
         cv2.polylines(m, lines, False, 1, 1, cv2.LINE_8, shift=4)
@@ -628,10 +629,7 @@ def draw_directions(image: np.ndarray, camera: pycolmap.Camera, result: VpResult
     out = (_bgr(image) * 0.6).astype(np.uint8)
     W, H = camera.width, camera.height
     length = 0.04 * max(W, H)
-    gx, gy = np.meshgrid((np.arange(grid) + 0.5) * W / grid,
-                         (np.arange(max(2, grid * H // W)) + 0.5) * H /
-                         max(2, grid * H // W))
-    anchors = np.stack([gx.ravel(), gy.ravel()], 1)
+    anchors = pixel_centers(grid, max(2, grid * H // W), W, H).reshape(-1, 2)
     rays = cam_utils.image_to_rays(camera, anchors)
 
     def needles(D, colours, thickness):
