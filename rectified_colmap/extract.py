@@ -194,7 +194,7 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
     names = list_images(image_dir, image_list)
     summary = Summary()
     t_start = time.perf_counter()
-    if depth_path is None and depth_model in (None, "none"):
+    if depth_path is None and depth_model in (None, "none") and not conf.vp.depth_free:
         logger.warning("no depth source (no --depth_path, --depth_model none): every image "
                        "gets plain SIFT")
 
