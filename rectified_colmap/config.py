@@ -159,6 +159,15 @@ class VpConf:
     support_min_lines: float = 0.5
     """...and a cell needs, for each of the two in-plane VPs, at least this many
     window-crossing lengths of its segments in the window."""
+    depth_free_regions: str = "lines"
+    """Depth-free patches: 'lines' = line-support regions (disjoint, vp.line_support_patches)
+    or 'whole' = the paper's VP baseline, whole-image warps (per trusted axis, each side of
+    its vanishing line entirely; overlapping, vp.whole_image_patches). See docs/vp.md."""
+
+    def __post_init__(self):
+        if self.depth_free_regions not in ("lines", "whole"):
+            raise ValueError("vp.depth_free_regions must be 'lines' or 'whole', got "
+                             f"{self.depth_free_regions!r}")
 
 
 @dataclass
@@ -185,6 +194,8 @@ class ExtractConf:
                 if not hasattr(sub, key):
                     raise KeyError(f"unknown configuration key {section}.{key}")
                 setattr(sub, key, type(getattr(sub, key))(value))
+            if hasattr(sub, "__post_init__"):  # the section's own validation
+                sub.__post_init__()
         return out
 
 

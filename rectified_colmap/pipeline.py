@@ -70,21 +70,47 @@ def _disparity_shift(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf
     return float(estimate_shift(depth.values, camera, conf))
 
 
-def viewing_coverage(camera: pycolmap.Camera, rects: list[Rectification], patches,
-                     shape: tuple[int, int], max_viewing_angle_deg: float) -> np.ndarray:
-    """(h, w) int16: which rectification covers each work-grid cell (-1: none).
-
-    A cell is covered when it belongs to the rectification's patch and its viewing angle is
-    within the limit (cells beyond it are left to plain SIFT)."""
+def viewing_masks(camera: pycolmap.Camera, rects: list[Rectification], patches,
+                  shape: tuple[int, int], max_viewing_angle_deg: float) -> np.ndarray:
+    """(n, h, w) bool: the work-grid cells each rectification covers: cells of its patch
+    whose viewing angle is within the limit (cells beyond it are left to plain SIFT).
+    Patches may overlap (depth-free whole-image warps): a cell can be in several masks."""
     h, w = shape
     rays = cam_utils.grid_rays(camera, w, h)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
     cos_max = np.cos(np.deg2rad(max_viewing_angle_deg))
-    cover = np.full((h, w), -1, np.int16)
+    out = np.zeros((len(rects), h, w), bool)
     for i, rect in enumerate(rects):
-        ok = patches[rect.patch_index].mask & (-(rays @ rect.normal) >= cos_max)
-        cover[ok & (cover < 0)] = i
+        out[i] = patches[rect.patch_index].mask & (-(rays @ rect.normal) >= cos_max)
+    return out
+
+
+def viewing_coverage(masks: np.ndarray) -> np.ndarray:
+    """(n, h, w) bool viewing_masks -> (h, w) int16: the first rectification covering
+    each cell (-1: none)."""
+    cover = np.full(masks.shape[1:], -1, np.int16)
+    for i in range(len(masks) - 1, -1, -1):
+        cover[masks[i]] = i
     return cover
+
+
+def rectification_budgets(masks: np.ndarray, total: int, keep_plain: bool) -> np.ndarray:
+    """(n + 1,) feature budgets [plain, rect 0, ...] summing to at most ``total``.
+
+    Shares follow areas: plain SIFT gets the uncovered cells (with keep_plain: all cells,
+    the covered ones at half weight), the rectifications the covered cells (half weight
+    with keep_plain). When rectifications overlap, the share of the covered cells (their
+    union) is split between them in proportion to each one's own covered area; without
+    overlap this is each one's own area. So plain SIFT's share, and the total, never
+    depend on the overlap."""
+    own = masks.reshape(len(masks), -1).sum(1).astype(float)
+    union = float(masks.any(0).sum())
+    cells = masks.shape[1] * masks.shape[2]
+    areas = np.concatenate([[cells - union], own * union / max(own.sum(), 1.0)])
+    if keep_plain:  # rectified pixels share their budget with plain SIFT
+        areas[0] += areas[1:].sum() / 2
+        areas[1:] /= 2
+    return split_budget(total, areas)
 
 
 def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: ExtractConf,
@@ -134,7 +160,10 @@ def orient_with_vanishing_points(gray: np.ndarray, camera: pycolmap.Camera,
 def plan_rectifications(camera: pycolmap.Camera, patches, indices: list[int],
                         conf: ExtractConf) -> list[Rectification]:
     """Rectifications of the given patches, scaled down together when their summed size
-    exceeds ``conf.rectify.max_total_area_factor`` x the image area."""
+    exceeds ``conf.rectify.max_total_area_factor`` x the image area x the patches'
+    overlap (summed patch areas / area of their union: 1 for disjoint patches; up to 3
+    for depth-free whole-image warps, which so keep the resolution that disjoint patches
+    of their size would get)."""
     def plan(scale):
         rects = (plan_rectification(camera, patches[i], i, conf.rectify, scale)
                  for i in indices)
@@ -142,7 +171,11 @@ def plan_rectifications(camera: pycolmap.Camera, patches, indices: list[int],
 
     rects = plan(1.0)
     total = sum(r.size[0] * r.size[1] for r in rects)
-    budget = conf.rectify.max_total_area_factor * camera.width * camera.height
+    masks = [patches[i].mask for i in indices]
+    overlap = 1.0
+    if masks:
+        overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
+    budget = conf.rectify.max_total_area_factor * camera.width * camera.height * overlap
     if total > budget:
         rects = plan(float(np.sqrt(budget / total)))
     return rects
@@ -219,21 +252,17 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     todo = [i for i, patch in enumerate(planes.patches)  # nearly fronto-parallel patches
             if np.arccos(np.clip(-patch.normal[2], -1, 1)) >= min_angle]  # stay plain
     rects = plan_rectifications(camera, planes.patches, todo, conf)
-    cover = viewing_coverage(camera, rects, planes.patches, planes.labels.shape,
-                             conf.rectify.max_viewing_angle_deg)
+    masks = viewing_masks(camera, rects, planes.patches, planes.labels.shape,
+                          conf.rectify.max_viewing_angle_deg)
+    cover = viewing_coverage(masks)
     t["homographies"] = time.perf_counter() - t0
     result = ImageResult(Features.empty(), planes, rects, cover, normals, t)
     if not rects or not (cover >= 0).any():
         result.features = detect_sift(gray, conf.sift, total)
         return result
 
-    areas = np.bincount(cover.ravel() + 1, minlength=len(rects) + 1).astype(float)
-    plain_region = cover < 0
-    if conf.rectify.keep_plain:  # rectified pixels share their budget with plain SIFT
-        plain_region = np.ones_like(plain_region)
-        areas[0] += areas[1:].sum() / 2
-        areas[1:] /= 2
-    budgets = split_budget(total, areas)
+    budgets = rectification_budgets(masks, total, conf.rectify.keep_plain)
+    plain_region = np.ones_like(cover, bool) if conf.rectify.keep_plain else cover < 0
 
     parts = []
     t0 = time.perf_counter()

@@ -37,8 +37,11 @@ output stays a rotation: with 2-3 snapped directions it is the matched frame; wi
 the depth frame rotated minimally onto it; with none, the depth frame unchanged.
 
 Depth-free planes (``depth_free_planes``, conf.depth_free): the confident frame gives the
-directions, and ``line_support_patches`` the patches: a plane with normal F[k] is where
-segments of both other VPs are dense (see its docstring), split by the sign of ray . F[k].
+directions, and the patches come from ``line_support_patches`` (conf.depth_free_regions =
+'lines': a plane with normal F[k] is where segments of both other VPs are dense, see its
+docstring, split by the sign of ray . F[k]) or ``whole_image_patches`` ('whole', the
+paper's VP baseline: per trusted axis, each side of its vanishing line entirely; the
+patches overlap).
 """
 
 from __future__ import annotations
@@ -581,16 +584,59 @@ def line_support_patches(result: VpResult, camera: pycolmap.Camera,
     return patches, labels
 
 
+def whole_image_patches(result: VpResult, camera: pycolmap.Camera,
+                        work_shape: tuple[int, int], conf: VpConf = VpConf(),
+                        min_area_frac: float = 0.005) -> tuple[list[Patch], np.ndarray]:
+    """The paper's VP baseline: whole-image warps -> (patches, labels (h, w) int8).
+
+    For each trusted frame axis k (``result.snapped``) and each side of its vanishing line,
+    one patch holds ALL cells whose ray r sees the plane of normal n = +-F[k] from the
+    front (r . n < 0); n faces the camera. No segmentation: the patches overlap (a cell
+    lies in one patch per trusted axis, so in up to 3); rectify's viewing-angle crop then
+    removes the grazing cells near each vanishing line. Sides under ``min_area_frac`` of
+    the grid are dropped. ``labels`` (for visualisation and support only) gives each cell
+    the label (2k + s, as line_support_patches) of the patch seeing it most frontally.
+    ``result`` must carry a confident frame (``result.directions``)."""
+    h, w = work_shape
+    labels = np.full((h, w), -1, np.int8)
+    F = result.directions
+    if F is None:
+        return [], labels
+    rays = cam_utils.grid_rays(camera, w, h)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    cos = rays @ F.T  # (h, w, 3): r . F[k]; side s = 1 (normal -F[k]) where > 0
+    patches, best = [], np.zeros((h, w))
+    for k in np.flatnonzero(result.snapped):
+        for s in (0, 1):
+            frontal = -cos[..., k] * (-1.0 if s else 1.0)  # -r . n
+            mask = frontal > 0
+            if mask.mean() < min_area_frac:
+                continue
+            patches.append(Patch(mask, int(k), F[k] * (-1.0 if s else 1.0),
+                                 float(mask.mean())))
+            better = mask & (frontal > best)
+            labels[better], best[better] = 2 * k + s, frontal[better]
+    patches.sort(key=lambda p: -p.area_frac)
+    return patches, labels
+
+
 def depth_free_planes(image_gray: np.ndarray, camera: pycolmap.Camera,
                       work_shape: tuple[int, int], conf: VpConf = VpConf(),
                       min_area_frac: float = 0.005, gravity: np.ndarray | None = None,
                       rng: np.random.Generator | None = None
                       ) -> tuple[PlaneResult, VpResult]:
-    """Depth-free mode: Manhattan frame from lines (manhattan_from_image) + line-support
-    patches -> a planes.PlaneResult on the work grid (no patches, directions None, without
-    a confident frame: the pipeline then falls back to plain SIFT)."""
+    """Depth-free mode: Manhattan frame from lines (manhattan_from_image) + patches ->
+    a planes.PlaneResult on the work grid (no patches, directions None, without a
+    confident frame: the pipeline then falls back to plain SIFT). The patches follow
+    conf.depth_free_regions: 'lines' = line_support_patches (disjoint), 'whole' =
+    whole_image_patches (the paper's VP baseline, overlapping)."""
+    regions = {"lines": line_support_patches, "whole": whole_image_patches}
+    if conf.depth_free_regions not in regions:
+        raise ValueError(f"vp.depth_free_regions must be one of {sorted(regions)}, "
+                         f"got {conf.depth_free_regions!r}")
     res = manhattan_from_image(image_gray, camera, conf, gravity, rng)
-    patches, labels = line_support_patches(res, camera, work_shape, conf, min_area_frac)
+    patches, labels = regions[conf.depth_free_regions](res, camera, work_shape, conf,
+                                                       min_area_frac)
     areas = np.bincount(labels[labels >= 0] // 2, minlength=3)[:3]
     support = areas / max(1, labels.size)
     return PlaneResult(res.directions, support, labels, patches), res

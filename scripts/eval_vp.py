@@ -14,13 +14,20 @@ Depth "network" = GT depth corrupted per image, independently in the two views:
   4x3 uniform noise in [-1, 1], a = ``--field`` (default 0.15: +-15%).
 
 Methods (same SIFT budget): plain SIFT; rectified with GT depth (reference); rectified with
-the corrupted depth; corrupted depth + VP (vp.enabled); VP only (no depth, vp.depth_free).
+the corrupted depth; corrupted depth + VP (vp.enabled); VP only (no depth, vp.depth_free,
+line-support regions); VP only with whole-image warps (vp.depth_free_regions = 'whole',
+the paper's VP baseline).
 Per method: dominant-direction error (each direction to the nearest GT axis = world axes
 in the camera frame; depth-free: the Manhattan frame), patch-normal error (median angle
 between a patch's normal and the GT normals of its pixels, area-weighted over patches),
 pose success (rotation error < 5 deg), GT-correct matches (Sampson < 3 px).
 
     python scripts/eval_vp.py --num_pairs 12 --output docs/vp_synth.md
+
+``--timing SCENE...`` times plain SIFT and the two depth-free modes per image instead
+(first ``--num_images`` images of each scene; ``--max_num_features`` budget)::
+
+    python scripts/eval_vp.py --timing /work/shared/data/strecha-dev/* --max_num_features 1024
 
 ``--combine`` merges relative-pose records of several scripts/eval_strecha.py runs (one
 method each, renamed) into one table by rotation bin (the real-photo part of docs/vp.md)::
@@ -53,7 +60,8 @@ from rectified_colmap.pipeline import extract_image
 
 logger = logging.getLogger("eval_vp")
 
-METHODS = ("plain", "rect GT depth", "rect corrupted", "rect corrupted + VP", "VP only")
+WHOLE = "VP only, whole-image warps"
+METHODS = ("plain", "rect GT depth", "rect corrupted", "rect corrupted + VP", "VP only", WHOLE)
 
 
 def corrupt_depth(depth: np.ndarray, camera, rng: np.random.Generator,
@@ -100,6 +108,28 @@ def patch_errors(planes, gt_normals: np.ndarray) -> list[tuple[float, int]]:
     return out
 
 
+def patch_precision_recall(planes, gt_normals: np.ndarray, tol_deg: float = 10.0
+                           ) -> np.ndarray:
+    """(4,) cell counts on the work grid: [patch cells whose GT normal is within tol_deg
+    of the patch normal, patch cells with a GT normal (summed over patches: overlapping
+    patches count each time), GT-planar cells in some patch of their normal, GT-planar
+    cells]. Precision = [0] / [1], recall = [2] / [3]."""
+    if planes is None or planes.labels is None:
+        return np.zeros(4)
+    h, w = planes.labels.shape
+    N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
+    valid = cv2.resize(np.isfinite(gt_normals).all(-1).astype(np.uint8), (w, h),
+                       interpolation=cv2.INTER_NEAREST) > 0
+    cos_t = np.cos(np.deg2rad(tol_deg))
+    good, cells, hit = 0, 0, np.zeros((h, w), bool)
+    for p in planes.patches:
+        ok = p.mask & valid & (N @ p.normal >= cos_t)
+        good += ok.sum()
+        cells += (p.mask & valid).sum()
+        hit |= ok
+    return np.array([good, cells, hit.sum(), valid.sum()], float)
+
+
 def make_pairs(num: int, min_deg: float, max_deg: float, width: int, height: int):
     pairs, seed = [], 0
     while len(pairs) < num and seed < 10 * num:
@@ -127,8 +157,10 @@ def confs(max_num_features: int) -> dict[str, ExtractConf]:
     vp.vp.enabled = True
     free = ExtractConf.from_dict(base.to_dict())
     free.vp.depth_free = True
+    whole = ExtractConf.from_dict(free.to_dict())
+    whole.vp.depth_free_regions = "whole"
     return {"rect GT depth": base, "rect corrupted": base, "rect corrupted + VP": vp,
-            "VP only": free}
+            "VP only": free, WHOLE: whole}
 
 
 def run(args) -> str:
@@ -136,9 +168,10 @@ def run(args) -> str:
     pairs = make_pairs(args.num_pairs, args.min_deg, args.max_deg, args.width, args.height)
     cfs = confs(args.max_num_features)
     eval_conf = EvalConf()
-    records, dir_err, patch_err, coverage, nrect = [], {}, {}, {}, {}
+    records, dir_err, patch_err, coverage, nrect, secs = [], {}, {}, {}, {}, {}
     for m in METHODS:
-        dir_err[m], patch_err[m], coverage[m], nrect[m] = [], [], [], []
+        dir_err[m], patch_err[m], coverage[m], nrect[m], secs[m] = [], [], [], [], []
+    prec_rec = {m: np.zeros(4) for m in METHODS}
     for i, (target, camera, renders, poses, rng) in enumerate(pairs):
         feats = {m: {} for m in METHODS}
         for j, (r, pose) in enumerate(zip(renders, poses)):
@@ -147,18 +180,22 @@ def run(args) -> str:
             gt_axes = np.asarray(pose.rotation.matrix()).T  # rows: world axes in camera
             bad = corrupt_depth(r.depth, camera, rng, args.tilt_deg, args.field)
             for m in METHODS:
+                ts = time.perf_counter()
                 if m == "plain":
                     f = detect_sift(gray, cfs["rect GT depth"].sift, args.max_num_features)
                     res = None
                 else:
-                    depth = {"rect GT depth": DepthMap(r.depth, "metric"),
-                             "VP only": None}.get(m, DepthMap(bad, "metric"))
+                    depth = {"rect GT depth": DepthMap(r.depth, "metric"), "VP only": None,
+                             WHOLE: None}.get(m, DepthMap(bad, "metric"))
                     res = extract_image(r.image, camera, depth, cfs[m],
                                         np.random.default_rng(i))
                     f = res.features
+                secs[m].append(time.perf_counter() - ts)
+                if res is not None:
                     dir_err[m].append(direction_errors(res.planes.directions
                                                        if res.planes else None, gt_axes))
                     patch_err[m] += patch_errors(res.planes, r.normals)
+                    prec_rec[m] += patch_precision_recall(res.planes, r.normals)
                     cov = res.coverage
                     coverage[m].append(0.0 if cov is None else float((cov >= 0).mean()))
                     nrect[m].append(len(res.rectifications))
@@ -175,7 +212,7 @@ def run(args) -> str:
         logger.info("pair %d (%s, %.0f deg): %s", i, target, pair.rotation_deg,
                     ", ".join(f"{r['method']} {r['num_correct']}/{r['success']:d}"
                               for r in recs))
-    return report(records, dir_err, patch_err, coverage, nrect, args,
+    return report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args,
                   time.perf_counter() - t0, len(pairs))
 
 
@@ -183,28 +220,33 @@ def _fmt(x, nd=1):
     return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}f}"
 
 
-def report(records, dir_err, patch_err, coverage, nrect, args, seconds, num_pairs) -> str:
+def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, seconds,
+           num_pairs) -> str:
     lines = [f"Rendered street pairs: {num_pairs} ({args.width}x{args.height}, "
              f"{args.min_deg:.0f}-{args.max_deg:.0f} deg apart, facade/ground alternating), "
              f"corrupted depth: normal tilt {args.tilt_deg[0]:.0f}-{args.tilt_deg[1]:.0f} deg at "
              f"the median distance + low-frequency field +-{100 * args.field:.0f}%; "
              f"SIFT budget {args.max_num_features}. {seconds:.0f} s.", "",
              "| method | directions found (images) | direction error median / p90 (deg) | "
-             "patch-normal error median / p90 (deg, area-weighted) | rectified area % | "
-             "pose success (R err < 5 deg) | GT-correct matches (total / median) |",
-             "|---|---|---|---|---|---|---|"]
+             "patch-normal error median / p90 (deg, area-weighted) | "
+             "patch precision / recall % (GT normal within 10 deg) | rectified area % | "
+             "pose success (R err < 5 deg) | GT-correct matches (total / median) | "
+             "keypoints / image (median) | s / image (median) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for m in METHODS:
         rs = [r for r in records if r["method"] == m]
         succ = sum(r["success"] for r in rs)
         corr = [r["num_correct"] for r in rs]
+        kps = np.median([r[k] for r in rs for k in ("num_kp0", "num_kp1")])
         if m == "plain":
-            lines.append(f"| {m} | - | - | - | 0 | {succ}/{len(rs)} | {sum(corr)} / "
-                         f"{np.median(corr):.0f} |")
+            lines.append(f"| {m} | - | - | - | - | 0 | {succ}/{len(rs)} | {sum(corr)} / "
+                         f"{np.median(corr):.0f} | {kps:.0f} | {np.median(secs[m]):.2f} |")
             continue
         d = np.array(dir_err[m])
         found = int(np.isfinite(d).all(1).sum())
         e = d[np.isfinite(d)]
         pe = np.array(patch_err[m]) if patch_err[m] else np.zeros((0, 2))
+        pr = prec_rec[m]
 
         def wq(q):
             if len(pe) == 0:
@@ -216,8 +258,10 @@ def report(records, dir_err, patch_err, coverage, nrect, args, seconds, num_pair
         lines.append(
             f"| {m} | {found}/{len(d)} | {_fmt(np.median(e) if len(e) else None, 2)} / "
             f"{_fmt(np.percentile(e, 90) if len(e) else None, 2)} | {_fmt(wq(0.5), 2)} / "
-            f"{_fmt(wq(0.9), 2)} | {100 * np.mean(coverage[m]):.0f} | {succ}/{len(rs)} | "
-            f"{sum(corr)} / {np.median(corr):.0f} |")
+            f"{_fmt(wq(0.9), 2)} | {_fmt(100 * pr[0] / max(pr[1], 1), 0)} / "
+            f"{_fmt(100 * pr[2] / max(pr[3], 1), 0)} | "
+            f"{100 * np.mean(coverage[m]):.0f} | {succ}/{len(rs)} | "
+            f"{sum(corr)} / {np.median(corr):.0f} | {kps:.0f} | {np.median(secs[m]):.2f} |")
     by_target = ["", "Per target (pose success; GT-correct total):", "",
                  "| method | " + " | ".join(sorted({r['target'] for r in records})) + " |",
                  "|---|" + "---|" * len({r['target'] for r in records})]
@@ -251,6 +295,54 @@ def combine(specs: list[str], bin_deg: float = 10.0) -> str:
                               c.min_correct)
 
 
+def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
+    """Seconds per image (one thread) of plain SIFT and the two depth-free modes on the
+    first ``num_images`` images of each Strecha-layout scene (images/, sparse/)."""
+    from eval_strecha import scene_camera  # scripts/ is on sys.path when run as a script
+
+    from rectified_colmap.camera import make_camera
+    from rectified_colmap.extract import read_image
+
+    cv2.setNumThreads(1)  # as extract's workers
+    lines, whole = ExtractConf(), ExtractConf()
+    for c in (lines, whole):
+        c.sift.max_num_features = max_num_features
+        c.vp.depth_free = True
+    whole.vp.depth_free_regions = "whole"
+    modes = {"plain SIFT": None, "VP only (line regions)": lines, WHOLE: whole}
+    rows = {m: [] for m in modes}  # (seconds, warps, covered %, warped area / image)
+    for scene in scenes:
+        model, params = scene_camera(scene)
+        for path in sorted((scene / "images").glob("*.jpg"))[:num_images]:
+            image = read_image(path)
+            camera = make_camera(model, [float(p) for p in params.split(",")],
+                                 image.shape[1], image.shape[0])
+            for m, c in modes.items():
+                t = time.perf_counter()
+                if c is None:
+                    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+                    detect_sift(gray, ExtractConf().sift, max_num_features)
+                    rows[m].append((time.perf_counter() - t, 0, 0.0, 0.0))
+                    continue
+                res = extract_image(image, camera, None, c)
+                cov = 0.0 if res.coverage is None else 100 * float((res.coverage >= 0).mean())
+                warped = sum(r.size[0] * r.size[1] for r in res.rectifications)
+                rows[m].append((time.perf_counter() - t, len(res.rectifications), cov,
+                                warped / (camera.width * camera.height)))
+            logger.info("%s: %s", path.name, ", ".join(f"{m} {v[-1][0]:.2f} s"
+                                                        for m, v in rows.items()))
+    size = f"{image.shape[1]}x{image.shape[0]}"
+    out = [f"{len(rows[WHOLE])} images ({size}), {max_num_features} features, one thread.",
+           "", "| mode | s / image median (min-max) | warps median | covered % median | "
+           "warped pixels / image pixels median |", "|---|---|---|---|---|"]
+    for m, v in rows.items():
+        a = np.array(v)
+        out.append(f"| {m} | {np.median(a[:, 0]):.2f} ({a[:, 0].min():.2f}-"
+                   f"{a[:, 0].max():.2f}) | {np.median(a[:, 1]):.0f} | "
+                   f"{np.median(a[:, 2]):.0f} | {np.median(a[:, 3]):.2f} |")
+    return "\n".join(out) + "\n"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--num_pairs", type=int, default=12)
@@ -265,9 +357,15 @@ def main(argv=None) -> int:
     p.add_argument("--combine", nargs="+", metavar="LABEL=records.csv:method",
                    help="only merge eval_strecha records into one table (see above)")
     p.add_argument("--bin_deg", type=float, default=10.0, help="with --combine")
+    p.add_argument("--timing", nargs="+", type=Path, metavar="SCENE",
+                   help="only time plain SIFT and the depth-free modes on Strecha scenes")
+    p.add_argument("--num_images", type=int, default=3, help="with --timing, per scene")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
-    text = combine(args.combine, args.bin_deg) if args.combine else run(args)
+    if args.timing:
+        text = timing(args.timing, args.num_images, args.max_num_features)
+    else:
+        text = combine(args.combine, args.bin_deg) if args.combine else run(args)
     print(text)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -8,10 +8,13 @@ import pytest
 from rectified_colmap import camera as cam_utils
 from rectified_colmap import synth
 from rectified_colmap.config import ExtractConf, VpConf
-from rectified_colmap.features import detect_sift
-from rectified_colmap.pipeline import extract_image
+from rectified_colmap.features import detect_sift, keypoints_in_mask, split_budget
+from rectified_colmap.pipeline import (extract_image, plan_rectifications,
+                                       rectification_budgets, viewing_coverage,
+                                       viewing_masks)
+from rectified_colmap.planes import Patch
 from rectified_colmap.vp import (VpResult, depth_free_planes, line_support_patches,
-                                 manhattan_from_image, Segments)
+                                 manhattan_from_image, Segments, whole_image_patches)
 
 W, H = 480, 360
 
@@ -190,3 +193,118 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
         assert e
         errs[enabled] = np.median(e)
     assert errs[False] > 8.0 and errs[True] < 1.0, errs
+
+
+# -- depth-free whole-image warps (the paper's VP baseline, vp.depth_free_regions='whole') --
+
+def _frame_result(F, trusted):
+    """A VpResult carrying frame F (rows) with the given trusted axes, no segments."""
+    seg = Segments(np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
+                   np.zeros(0, int))
+    return VpResult(F, np.asarray(trusted, bool), np.ones(3), F, seg)
+
+
+def test_whole_image_patches_are_the_half_spaces_of_the_vanishing_lines():
+    """Exact geometry: for a frame whose three vanishing lines cross a wide pinhole image,
+    each trusted axis gives two patches, exactly the cells on either side of its vanishing
+    line l = K^-T F[k] (sign of l . (x, y, 1) at the cell centre), each with the normal
+    facing those cells; every cell lies in one patch per trusted axis; labels pick the
+    patch seen most frontally."""
+    f, h, w = 240.0, 90, 120  # work grid of a 480x360 image, half FOV 45 deg
+    camera = synth.pinhole_camera(W, H, f)
+    F = _rot(np.cross([0, 0, 1], [1, 1, 1]), np.degrees(np.arccos(1 / np.sqrt(3)))).T
+    F = F @ _rot([0.3, -0.2, 1.0], 7.0).T  # every axis ~55 deg from the view, no ties
+    K = camera.calibration_matrix()
+    xs, ys = np.meshgrid((np.arange(w) + 0.5) * W / w, (np.arange(h) + 0.5) * H / h)
+    pix = np.stack([xs, ys, np.ones_like(xs)], -1)  # COLMAP pixel centres of the grid
+    rays = cam_utils.grid_rays(camera, w, h)
+    for trusted in ([True, True, True], [True, False, True]):
+        patches, labels = whole_image_patches(_frame_result(F, trusted), camera, (h, w),
+                                              VpConf(), 0.005)
+        assert sorted((p.axis, tuple(np.sign(p.normal @ F[p.axis]).astype(int).ravel()))
+                      for p in patches) == sorted(
+            (k, (s,)) for k in np.flatnonzero(trusted) for s in (-1, 1))
+        count = np.zeros((h, w), int)
+        for p in patches:
+            side = pix @ (np.linalg.inv(K).T @ F[p.axis])  # l . x, l the vanishing line
+            expect = side < 0 if p.normal @ F[p.axis] > 0 else side > 0
+            assert (p.mask == expect).all()
+            assert (rays[p.mask] @ p.normal < 0).all()  # seen from the front
+            assert 0.05 < p.area_frac < 0.95
+            count += p.mask
+        assert (count == sum(trusted)).all()  # overlapping: one warp per trusted axis
+        cosines = np.stack([np.where(p.mask, -(rays @ p.normal), -np.inf) for p in patches])
+        best = np.array([2 * p.axis + (p.normal @ F[p.axis] < 0) for p in patches])
+        np.testing.assert_array_equal(labels, best[np.argmax(cosines, 0)])
+
+
+def test_depth_free_regions_is_validated():
+    with pytest.raises(ValueError, match="depth_free_regions"):
+        ExtractConf.from_dict({"vp": {"depth_free_regions": "half"}})
+    with pytest.raises(ValueError, match="depth_free_regions"):
+        VpConf(depth_free_regions="all")
+
+
+def test_budgets_of_overlapping_rectifications():
+    """The total stays the budget; plain SIFT's share only depends on the union of the
+    covered cells (half of it under keep_plain), overlapping warps split the rectified
+    share by their own areas; disjoint patches get the former first-cover rule."""
+    h, w, total = 40, 60, 1000
+    left = np.zeros((h, w), bool)
+    left[:, :30] = True
+    top = np.zeros((h, w), bool)
+    top[:10] = True
+    for keep_plain in (True, False):
+        b = rectification_budgets(np.stack([left, np.ones((h, w), bool)]), total, keep_plain)
+        assert total - len(b) <= b.sum() <= total
+        assert b[0] == (total // 2 if keep_plain else 0)
+        assert abs(b[2] - 2 * b[1]) <= 2  # own areas 1/2 and 1 of the image
+        masks = np.stack([left, top & ~left])  # disjoint: the former rule
+        cover = viewing_coverage(masks)
+        areas = np.bincount(cover.ravel() + 1, minlength=3).astype(float)
+        if keep_plain:
+            areas[0] += areas[1:].sum() / 2
+            areas[1:] /= 2
+        np.testing.assert_array_equal(rectification_budgets(masks, total, keep_plain),
+                                      split_budget(total, areas))
+
+
+def test_overlapping_patches_keep_their_resolution():
+    """The total-area budget scales with the overlap: two identical (fully overlapping)
+    patches are planned at the size of one alone."""
+    camera = synth.pinhole_camera(W, H, 0.9 * W)
+    mask = np.ones((H // 4, W // 4), bool)
+    patch = Patch(mask, 0, np.array([0.8, 0.0, -0.6]), 1.0)
+    conf = ExtractConf()
+    one = plan_rectifications(camera, [patch], [0], conf)
+    two = plan_rectifications(camera, [patch, patch], [0, 1], conf)
+    assert len(one) == 1 and len(two) == 2
+    assert one[0].size == two[0].size == two[1].size
+
+
+def test_whole_image_warps_end_to_end(views):
+    """extract_image with depth_free_regions='whole' on a street view: the warps overlap,
+    each one has features over its own region (also where another warp covers the
+    cells), none outside its half-space, and plain SIFT keeps half of the budget."""
+    conf = _depth_free_conf()
+    conf.vp.depth_free_regions = "whole"
+    conf.sift.max_num_features = 1024
+    r, camera = views[4]
+    res = extract_image(r.image, camera, None, conf)
+    assert len(res.rectifications) >= 3
+    masks = viewing_masks(camera, res.rectifications, res.planes.patches,
+                          res.planes.labels.shape, conf.rectify.max_viewing_angle_deg)
+    assert (masks.sum(0) >= 2).mean() > 0.3  # overlapping warps
+    feats = res.features
+    plain = feats.patch < 0
+    assert 0.3 * 1024 < plain.sum() < 1024  # ~half the budget (+ second orientations)
+    assert len(feats) <= 2 * 1024
+    in_other = 0
+    for i, rect in enumerate(res.rectifications):
+        mine = feats.patch == rect.patch_index
+        assert mine.sum() > 10
+        inside = keypoints_in_mask(feats.keypoints[mine], masks[i], (W, H))
+        assert inside.mean() > 0.95  # map back into its own (cropped) region
+        others = masks[np.arange(len(masks)) != i].any(0)
+        in_other += keypoints_in_mask(feats.keypoints[mine], others, (W, H)).sum()
+    assert in_other > 50  # overlapping regions get features from several warps
