@@ -21,17 +21,17 @@ import cv2
 import numpy as np
 import pycolmap
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_vp import axis_errors_deg, cam, render_street, rot, street_camera  # noqa: E402
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from rectified_colmap.camera import make_camera  # noqa: E402
 from rectified_colmap.config import VpConf  # noqa: E402
+from rectified_colmap.synth.lines import axis_errors_deg, render_street, rot, street_camera  # noqa: E402
 from rectified_colmap.vp import (draw_directions, draw_segments, manhattan_from_image,  # noqa
                                  refine_directions, save_png)
 
 
 def synthetic(conf: VpConf, num: int = 40, clutter: float = 0.3, lines: bool = True):
     rng = np.random.default_rng(0)
-    camera = cam(1024, 683, 850.0)
+    camera = make_camera("PINHOLE", [850.0, 850.0, 512.0, 341.5], 1024, 683)
     before, after, snapped, contra = [], [], [], []
     for _ in range(num):
         R = street_camera(rng)
