@@ -248,3 +248,36 @@ def test_svc_reader_from_model_and_pair_selection(tmp_path):
     (tmp_path / "s1" / "pairs.txt").unlink()
     cats = sorted(p.category for p in read_strong_viewpoint_changes(tmp_path))
     assert cats == ["100-110", "30-40", "60-70"]
+
+
+def test_binomial_p_exact():
+    from math import comb
+
+    assert report.binomial_two_sided_p(0, 0) == 1.0
+    assert report.binomial_two_sided_p(0, 5) == pytest.approx(2 / 32)
+    assert report.binomial_two_sided_p(5, 5) == pytest.approx(2 / 32)
+    assert report.binomial_two_sided_p(3, 6) == 1.0
+    assert report.binomial_two_sided_p(1, 10) == pytest.approx(2 * (1 + comb(10, 1)) / 1024)
+
+
+def test_paired_comparison_counts_discordant_pairs():
+    def rec(method, i, rot, success, correct):
+        return {"name0": f"a{i}", "name1": f"b{i}", "method": method, "gt_rot": rot,
+                "success": success, "num_correct": correct}
+
+    recs = []
+    for i in range(12):  # bin 0-10: both solve; bin 60-70: the method solves 6 more
+        recs.append(rec("base", i, 5.0 if i < 6 else 65.0, i < 6, 100))
+        recs.append(rec("new", i, 5.0 if i < 6 else 65.0, True, 100 + (i >= 6) * 50 - (i == 0)))
+    recs.append(rec("base", 99, 65.0, True, 10))  # a pair the new method lacks: ignored
+    rows = {r["bin"]: r for r in report.paired_comparison(recs, "base", 10.0)}
+    allr, b0, b6 = rows[None], rows[(0.0, 10.0)], rows[(60.0, 70.0)]
+    assert (allr["pairs"], allr["wins"], allr["losses"]) == (12, 6, 0)
+    assert allr["p_success"] == pytest.approx(2 / 64)
+    assert (b0["wins"], b0["losses"], b0["p_success"]) == (0, 0, 1.0)
+    assert (b0["more"], b0["fewer"]) == (0, 1)
+    assert (b6["more"], b6["fewer"], b6["median_ratio"]) == (6, 0, 1.5)
+    md = report.paired_markdown(recs, "base", 10.0)
+    assert "| new | all | 12 | 6 | 0 | **0.031** |" in md
+    with pytest.raises(ValueError, match="baseline"):
+        report.paired_comparison(recs, "nope")

@@ -86,6 +86,10 @@ def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str =
     report.write_csv(out / "records.csv", records)
     table = report.markdown_table(records, conf.bin_deg, conf.auc_thresholds,
                                   conf.success_deg, conf.min_correct)
+    methods = report.methods_of(records)
+    if len(methods) > 1:  # the first method of --features is the baseline
+        table += ("\nPaired with " + methods[0] + " (same pairs; p: exact two-sided)\n\n"
+                  + report.paired_markdown(records, methods[0], conf.bin_deg))
     (out / "summary.md").write_text(table)
     (out / "summary.json").write_text(json.dumps(
         report.summary(records, conf.auc_thresholds), indent=1))

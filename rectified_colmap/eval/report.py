@@ -6,6 +6,9 @@
   protocol: area under the cumulative error curve up to each threshold, normalised).
 - Degeneracy-aware columns: median number of GT-correct matches and the fraction of pairs
   with at least ``min_correct`` of them.
+- Paired comparison with a baseline method (the first one): methods run on the same pairs,
+  so the noise of a success difference is judged on the discordant pairs (exact McNemar
+  test) and the GT-correct counts by a sign test over pairs, overall and per bin.
 
 Markdown and CSV are plain text; the PNG needs matplotlib (the ``[eval]`` extra), imported
 lazily with a clear error when absent.
@@ -106,6 +109,72 @@ def summary(records: list[dict], auc_thresholds=(5.0, 10.0, 20.0)) -> list[dict]
             row[f"auc@{t:g}"] = a
         rows.append(row)
     return rows
+
+
+def binomial_two_sided_p(k: int, n: int) -> float:
+    """Exact two-sided p-value of k successes in n fair coin flips (McNemar / sign test)."""
+    if n == 0:
+        return 1.0
+    from math import comb
+
+    tail = sum(comb(n, i) for i in range(0, min(k, n - k) + 1)) / 2.0 ** n
+    return float(min(1.0, 2.0 * tail))
+
+
+def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0
+                      ) -> list[dict]:
+    """Each other method against ``baseline`` on the pairs both have, per GT rotation bin and
+    overall (``bin`` = None): ``wins``/``losses`` = pairs only the method / only the baseline
+    solves, ``p_success`` (exact McNemar), ``more``/``fewer`` = pairs with more / fewer
+    GT-correct matches than the baseline, ``p_correct`` (sign test, ties dropped) and
+    ``median_ratio`` of GT-correct counts (method / baseline, pairs where the baseline has any).
+    """
+    key = lambda r: (r["name0"], r["name1"])  # noqa: E731
+    base = {key(r): r for r in records if r["method"] == baseline}
+    if not base:
+        raise ValueError(f"no records of the baseline method {baseline!r}")
+    edges = bin_edges(bin_deg)
+    rows = []
+    for m in methods_of(records):
+        if m == baseline:
+            continue
+        pairs = [(base[key(r)], r) for r in records if r["method"] == m and key(r) in base]
+        if not pairs:
+            continue
+        b = bin_index(np.array([p[0]["gt_rot"] for p in pairs]), edges)
+        s0 = np.array([p[0]["success"] for p in pairs], bool)
+        s1 = np.array([p[1]["success"] for p in pairs], bool)
+        c0 = np.array([p[0]["num_correct"] for p in pairs], float)
+        c1 = np.array([p[1]["num_correct"] for p in pairs], float)
+        for k in [None] + sorted(set(b.tolist())):
+            sel = np.ones(len(pairs), bool) if k is None else b == k
+            wins, losses = int((s1 & ~s0)[sel].sum()), int((s0 & ~s1)[sel].sum())
+            more, fewer = int((c1 > c0)[sel].sum()), int((c1 < c0)[sel].sum())
+            has = sel & (c0 > 0)
+            rows.append({"method": m, "bin": None if k is None else (edges[k], edges[k + 1]),
+                         "pairs": int(sel.sum()), "wins": wins, "losses": losses,
+                         "p_success": binomial_two_sided_p(wins, wins + losses),
+                         "more": more, "fewer": fewer,
+                         "p_correct": binomial_two_sided_p(more, more + fewer),
+                         "median_ratio": float(np.median(c1[has] / c0[has])) if has.any()
+                         else float("nan")})
+    return rows
+
+
+def paired_markdown(records: list[dict], baseline: str, bin_deg: float = 10.0) -> str:
+    """:func:`paired_comparison` as a Markdown table (p < 0.05 in bold)."""
+    head = ["method vs " + baseline, "GT rotation (deg)", "pairs", "solved only by method",
+            "solved only by baseline", "McNemar p", "more GT-correct", "fewer GT-correct",
+            "sign-test p", "median GT-correct ratio"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    fmt = lambda p: f"**{p:.3f}**" if p < 0.05 else f"{p:.3f}"  # noqa: E731
+    for r in paired_comparison(records, baseline, bin_deg):
+        rng = "all" if r["bin"] is None else f"{r['bin'][0]:g}-{r['bin'][1]:g}"
+        lines.append("| " + " | ".join([
+            r["method"], rng, str(r["pairs"]), str(r["wins"]), str(r["losses"]),
+            fmt(r["p_success"]), str(r["more"]), str(r["fewer"]), fmt(r["p_correct"]),
+            "-" if np.isnan(r["median_ratio"]) else f"{r['median_ratio']:.2f}"]) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def _pct(v: float) -> str:
