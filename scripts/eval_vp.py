@@ -24,6 +24,15 @@ pose success (rotation error < 5 deg), GT-correct matches (Sampson < 3 px).
 
     python scripts/eval_vp.py --num_pairs 12 --output docs/vp_synth.md
 
+``--depth_model NAME|PATH ...`` adds one row "rect network (NAME)" per ONNX depth network
+(registry name or .onnx path, resolved as `rectified-colmap extract --depth_model`; CPU,
+one thread): each rendered image's depth is predicted by the network (OnnxDepthSource ->
+DepthMap -> extract_image, as in extraction); ``--depth_model_vp`` adds the same with
+vp.enabled ("rect network (NAME) + VP"). Their s / image include the network. A paired
+line per network row compares it with plain SIFT (exact two-sided binomial p-values)::
+
+    python scripts/eval_vp.py --num_pairs 24 --depth_model rectsift-lite0 --depth_model_vp
+
 ``--timing SCENE...`` times plain SIFT and the two depth-free modes per image instead
 (first ``--num_images`` images of each scene; ``--max_num_features`` budget)::
 
@@ -62,6 +71,51 @@ logger = logging.getLogger("eval_vp")
 
 WHOLE = "VP only, whole-image warps"
 METHODS = ("plain", "rect GT depth", "rect corrupted", "rect corrupted + VP", "VP only", WHOLE)
+CPU = ["CPUExecutionProvider"]
+
+
+def network_rows(specs: list[str], with_vp: bool) -> dict[str, tuple[str, bool]]:
+    """Row name -> (model name or path, vp.enabled) for --depth_model / --depth_model_vp.
+    Rows are named by the registry name or the file name (the path as given if two
+    models would share a name)."""
+    from rectified_colmap.depth.registry import REGISTRY
+
+    specs = list(dict.fromkeys(specs))
+    labels = [s if s in REGISTRY else Path(s).name for s in specs]
+    if len(set(labels)) < len(labels):
+        labels = specs
+    rows = {}
+    for spec, label in zip(specs, labels):
+        rows[f"rect network ({label})"] = (spec, False)
+        if with_vp:
+            rows[f"rect network ({label}) + VP"] = (spec, True)
+    return rows
+
+
+def load_networks(rows: dict[str, tuple[str, bool]]) -> dict:
+    """Model name or path -> OnnxDepthSource (CPU, one thread), each model loaded once."""
+    from rectified_colmap.depth.registry import load_depth_source
+
+    specs = dict.fromkeys(spec for spec, _ in rows.values())
+    return {spec: load_depth_source(spec, providers=CPU, num_threads=1) for spec in specs}
+
+
+def predict(networks: dict, image: np.ndarray, camera) -> dict[str, tuple[DepthMap, float]]:
+    """Model -> (predicted DepthMap, seconds) for one RGB image."""
+    out = {}
+    for spec, source in networks.items():
+        t = time.perf_counter()
+        out[spec] = (source(image, camera), time.perf_counter() - t)
+    return out
+
+
+def network_note(rows: dict[str, tuple[str, bool]], networks: dict) -> str:
+    from rectified_colmap.depth.registry import sha256_file
+
+    return "Networks (CPU, one thread; s / image includes the network): " + "; ".join(
+        f"{row} = {networks[spec].path} (sha256 {sha256_file(networks[spec].path)[:12]}, "
+        f"resize {networks[spec].spec.resize})" for row, (spec, vp) in rows.items() if not vp
+    ) + "."
 
 
 def corrupt_depth(depth: np.ndarray, camera, rng: np.random.Generator,
@@ -150,7 +204,8 @@ def make_pairs(num: int, min_deg: float, max_deg: float, width: int, height: int
     return pairs
 
 
-def confs(max_num_features: int) -> dict[str, ExtractConf]:
+def confs(max_num_features: int, rows: dict[str, tuple[str, bool]] | None = None
+          ) -> dict[str, ExtractConf]:
     base = ExtractConf()
     base.sift.max_num_features = max_num_features
     vp = ExtractConf.from_dict(base.to_dict())
@@ -159,38 +214,52 @@ def confs(max_num_features: int) -> dict[str, ExtractConf]:
     free.vp.depth_free = True
     whole = ExtractConf.from_dict(free.to_dict())
     whole.vp.depth_free_regions = "whole"
-    return {"rect GT depth": base, "rect corrupted": base, "rect corrupted + VP": vp,
-            "VP only": free, WHOLE: whole}
+    out = {"rect GT depth": base, "rect corrupted": base, "rect corrupted + VP": vp,
+           "VP only": free, WHOLE: whole}
+    out.update({row: vp if vp_on else base for row, (_, vp_on) in (rows or {}).items()})
+    return out
+
+
+def depth_for(m: str, gt: np.ndarray, bad: np.ndarray, rows: dict, predicted: dict
+              ) -> tuple[DepthMap | None, float]:
+    """(depth given to method m, seconds spent predicting it)."""
+    if m in rows:
+        return predicted[rows[m][0]]
+    return {"rect GT depth": DepthMap(gt, "metric"), "VP only": None,
+            WHOLE: None}.get(m, DepthMap(bad, "metric")), 0.0
 
 
 def run(args) -> str:
     t0 = time.perf_counter()
     pairs = make_pairs(args.num_pairs, args.min_deg, args.max_deg, args.width, args.height)
-    cfs = confs(args.max_num_features)
+    rows = network_rows(args.depth_model, args.depth_model_vp)
+    networks = load_networks(rows)
+    methods = METHODS + tuple(rows)
+    cfs = confs(args.max_num_features, rows)
     eval_conf = EvalConf()
     records, dir_err, patch_err, coverage, nrect, secs = [], {}, {}, {}, {}, {}
-    for m in METHODS:
+    for m in methods:
         dir_err[m], patch_err[m], coverage[m], nrect[m], secs[m] = [], [], [], [], []
-    prec_rec = {m: np.zeros(4) for m in METHODS}
+    prec_rec = {m: np.zeros(4) for m in methods}
     for i, (target, camera, renders, poses, rng) in enumerate(pairs):
-        feats = {m: {} for m in METHODS}
+        feats = {m: {} for m in methods}
         for j, (r, pose) in enumerate(zip(renders, poses)):
             name = str(j)
             gray = cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY)
             gt_axes = np.asarray(pose.rotation.matrix()).T  # rows: world axes in camera
             bad = corrupt_depth(r.depth, camera, rng, args.tilt_deg, args.field)
-            for m in METHODS:
+            predicted = predict(networks, r.image, camera)
+            for m in methods:
                 ts = time.perf_counter()
                 if m == "plain":
                     f = detect_sift(gray, cfs["rect GT depth"].sift, args.max_num_features)
-                    res = None
+                    res, t_depth = None, 0.0
                 else:
-                    depth = {"rect GT depth": DepthMap(r.depth, "metric"), "VP only": None,
-                             WHOLE: None}.get(m, DepthMap(bad, "metric"))
+                    depth, t_depth = depth_for(m, r.depth, bad, rows, predicted)
                     res = extract_image(r.image, camera, depth, cfs[m],
                                         np.random.default_rng(i))
                     f = res.features
-                secs[m].append(time.perf_counter() - ts)
+                secs[m].append(time.perf_counter() - ts + t_depth)
                 if res is not None:
                     dir_err[m].append(direction_errors(res.planes.directions
                                                        if res.planes else None, gt_axes))
@@ -212,8 +281,11 @@ def run(args) -> str:
         logger.info("pair %d (%s, %.0f deg): %s", i, target, pair.rotation_deg,
                     ", ".join(f"{r['method']} {r['num_correct']}/{r['success']:d}"
                               for r in recs))
-    return report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args,
-                  time.perf_counter() - t0, len(pairs))
+    text = report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args,
+                  time.perf_counter() - t0, len(pairs), methods)
+    if rows:
+        text += "\n" + network_note(rows, networks) + "\n\n" + paired_lines(records, rows)
+    return text
 
 
 def _fmt(x, nd=1):
@@ -221,7 +293,7 @@ def _fmt(x, nd=1):
 
 
 def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, seconds,
-           num_pairs) -> str:
+           num_pairs, methods=METHODS) -> str:
     lines = [f"Rendered street pairs: {num_pairs} ({args.width}x{args.height}, "
              f"{args.min_deg:.0f}-{args.max_deg:.0f} deg apart, facade/ground alternating), "
              f"corrupted depth: normal tilt {args.tilt_deg[0]:.0f}-{args.tilt_deg[1]:.0f} deg at "
@@ -233,7 +305,7 @@ def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, s
              "pose success (R err < 5 deg) | GT-correct matches (total / median) | "
              "keypoints / image (median) | s / image (median) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for m in METHODS:
+    for m in methods:
         rs = [r for r in records if r["method"] == m]
         succ = sum(r["success"] for r in rs)
         corr = [r["num_correct"] for r in rs]
@@ -265,7 +337,7 @@ def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, s
     by_target = ["", "Per target (pose success; GT-correct total):", "",
                  "| method | " + " | ".join(sorted({r['target'] for r in records})) + " |",
                  "|---|" + "---|" * len({r['target'] for r in records})]
-    for m in METHODS:
+    for m in methods:
         cells = []
         for t in sorted({r["target"] for r in records}):
             rs = [r for r in records if r["method"] == m and r["target"] == t]
@@ -273,6 +345,24 @@ def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, s
                          f"{sum(r['num_correct'] for r in rs)}")
         by_target.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines + by_target) + "\n"
+
+
+def paired_lines(records: list[dict], rows: dict) -> str:
+    """One line per network row vs plain SIFT over all pairs: GT-correct more / fewer
+    (sign test) and pose successes only by one or the other (McNemar), exact two-sided
+    binomial p-values (rectified_colmap.eval.report.paired_comparison)."""
+    from rectified_colmap.eval.report import paired_comparison
+
+    lines = []
+    for r in paired_comparison(records, "plain", bin_deg=180.0):
+        if r["bin"] is not None or r["method"] not in rows:
+            continue
+        lines.append(
+            f"- {r['method']} vs plain, {r['pairs']} pairs: more GT-correct on {r['more']}, "
+            f"fewer on {r['fewer']} (sign test p = {r['p_correct']:.3f}); pose solved only "
+            f"by the network row {r['wins']}, only by plain {r['losses']} "
+            f"(McNemar p = {r['p_success']:.3f}).")
+    return "Paired vs plain SIFT:\n\n" + "\n".join(lines) + "\n"
 
 
 def combine(specs: list[str], bin_deg: float = 10.0) -> str:
@@ -353,6 +443,11 @@ def main(argv=None) -> int:
     p.add_argument("--tilt_deg", type=float, nargs=2, default=(10.0, 20.0))
     p.add_argument("--field", type=float, default=0.15)
     p.add_argument("--max_num_features", type=int, default=8192)
+    p.add_argument("--depth_model", nargs="+", default=[], metavar="NAME|PATH",
+                   help="add a row 'rect network (NAME)' per ONNX depth network (registry "
+                        "name, e.g. rectsift-lite0, or .onnx path; CPU, one thread)")
+    p.add_argument("--depth_model_vp", action="store_true",
+                   help="with --depth_model: also each network with vp.enabled (+ VP)")
     p.add_argument("--output", type=Path, help="also write the Markdown table here")
     p.add_argument("--combine", nargs="+", metavar="LABEL=records.csv:method",
                    help="only merge eval_strecha records into one table (see above)")
@@ -361,6 +456,8 @@ def main(argv=None) -> int:
                    help="only time plain SIFT and the depth-free modes on Strecha scenes")
     p.add_argument("--num_images", type=int, default=3, help="with --timing, per scene")
     args = p.parse_args(argv)
+    if args.depth_model_vp and not args.depth_model:
+        p.error("--depth_model_vp needs --depth_model")
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     if args.timing:
         text = timing(args.timing, args.num_images, args.max_num_features)
