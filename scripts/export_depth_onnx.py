@@ -4,7 +4,9 @@
 The network maps a preprocessed image batch (B, 3, H, W) (or NHWC per the spec) to depth
 (B, 1, H', W') / (B, H', W'). The ONNX file gets opset 17, dynamic batch/height/width (or a
 fixed size), the ``rectified_colmap.*`` metadata of the given ModelSpec, optionally fp16
-weights (inputs/outputs stay float32), and is checked against PyTorch with onnxruntime.
+(``fp16``: fp16 arithmetic, inputs/outputs stay float32; ``fp16_storage``: fp16 weights in the
+file, cast to float32 when the session loads, so half the size and float32 arithmetic), and
+is checked against PyTorch with onnxruntime.
 
 Torch stays out of the runtime package: this script is the only exporter. From Python:
 
@@ -60,7 +62,8 @@ def compare_outputs(ref: np.ndarray, out: np.ndarray) -> dict[str, float]:
 
 def export_depth_onnx(model, output: str | Path, spec: ModelSpec, height: int = 256,
                       width: int = 320, dynamic: bool = True, fp16: bool = False,
-                      verify: bool = True, opset: int = OPSET) -> dict[str, float]:
+                      verify: bool = True, opset: int = OPSET,
+                      fp16_storage: bool = False) -> dict[str, float]:
     """Export ``model`` (torch.nn.Module) to ``output`` with ``spec`` attached.
 
     ``height``/``width``: the example (and, when not ``dynamic``, the fixed) input size.
@@ -100,15 +103,43 @@ def export_depth_onnx(model, output: str | Path, spec: ModelSpec, height: int = 
 
         proto = convert_float_to_float16(proto, keep_io_types=True)
         _toposort(proto.graph)  # the converter appends its input casts at the end
+    elif fp16_storage:
+        store_weights_fp16(proto)
     attach_metadata(proto, spec)
     onnx.checker.check_model(proto)
     onnx.save(proto, str(output))
     logger.info("wrote %s (%.1f MB, opset %d, %s%s)", output, output.stat().st_size / 1e6,
                 opset, "dynamic" if dynamic else f"fixed {width}x{height}",
-                ", fp16" if fp16 else "")
+                ", fp16" if fp16 else ", fp16 storage" if fp16_storage else "")
     if not verify:
         return {}
     return verify_export(model, output, spec, height, width, dynamic)
+
+
+def store_weights_fp16(proto, min_elements: int = 64) -> int:
+    """Store float32 initializers of at least ``min_elements`` values as float16, each read
+    through a Cast back to float32 (in place): the file halves, the arithmetic stays float32
+    (onnxruntime folds the casts when the session loads). Returns how many were converted."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    graph = proto.graph
+    casts, count = [], 0
+    for init in graph.initializer:
+        if init.data_type != TensorProto.FLOAT:
+            continue
+        arr = numpy_helper.to_array(init)
+        if arr.size < min_elements:
+            continue
+        name = init.name
+        init.CopyFrom(numpy_helper.from_array(arr.astype("float16"), name + "_fp16"))
+        casts.append(helper.make_node("Cast", [name + "_fp16"], [name], to=TensorProto.FLOAT,
+                                      name=name + "_to_fp32"))
+        count += 1
+    graph.node.extend(casts)
+    _toposort(graph)
+    onnx.checker.check_model(proto)
+    return count
 
 
 def _toposort(graph) -> None:
@@ -169,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--fixed", action="store_true", help="fixed input size (default: dynamic)")
     p.add_argument("--fp16", action="store_true", help="fp16 weights, float32 inputs/outputs")
+    p.add_argument("--fp16_storage", action="store_true",
+                   help="fp16 weights in the file, float32 arithmetic (half the size)")
     p.add_argument("--no_verify", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
@@ -182,7 +215,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.spec:
         spec = ModelSpec.from_dict(json.loads(args.spec.read_text()), origin=str(args.spec))
     export_depth_onnx(net, args.output, spec, args.height, args.width,
-                      dynamic=not args.fixed, fp16=args.fp16, verify=not args.no_verify)
+                      dynamic=not args.fixed, fp16=args.fp16, verify=not args.no_verify,
+                      fp16_storage=args.fp16_storage)
     return 0
 
 

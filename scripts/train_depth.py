@@ -58,7 +58,12 @@ def parse_args(argv=None):
     p.add_argument("--export_to", type=Path, default=None, help="ONNX path (default out/)")
     p.add_argument("--export_max_side", type=int, default=384)
     p.add_argument("--fp16", action="store_true", help="export fp16 weights")
+    p.add_argument("--fp16_storage", action="store_true",
+                   help="export fp16 weights read as float32 (half the size, float32 arithmetic)")
     p.add_argument("--resume", action="store_true", help="continue from out/last.pt")
+    p.add_argument("--init", type=Path, default=None,
+                   help="start from the weights of this checkpoint (a new optimizer and "
+                        "schedule: fine-tuning)")
     return p.parse_args(argv)
 
 
@@ -94,6 +99,10 @@ def main(argv=None) -> int:
     model = build_model(pretrained=not args.no_pretrained, width=args.decoder_width)
     opt = make_optimizer(model, args.lr)
     start = 0
+    if args.init is not None:
+        ck = torch.load(args.init, map_location="cpu", weights_only=False)
+        model.load_state_dict(ck["model"])
+        logger.info("initialised from %s (step %d)", args.init, ck["step"])
     if args.resume and (args.out / "last.pt").is_file():
         ck = torch.load(args.out / "last.pt", map_location="cpu", weights_only=False)
         model.load_state_dict(ck["model"])
@@ -109,7 +118,8 @@ def main(argv=None) -> int:
 
     def export(tag):
         te = time.time()
-        errs = export_onnx(model, export_to, spec, height=256, width=320, fp16=args.fp16)
+        errs = export_onnx(model, export_to, spec, height=256, width=320, fp16=args.fp16,
+                           fp16_storage=args.fp16_storage)
         logger.info("exported %s to %s (%s, %.0f s) %s", tag, export_to,
                     f"{export_to.stat().st_size / 1e6:.1f} MB", time.time() - te, errs)
 

@@ -22,6 +22,7 @@ import numpy as np
 import pycolmap
 
 from ..camera import model_name
+from ..conventions import OFFSET, to_opencv_points
 from .scene import Scene
 
 logger = logging.getLogger(__name__)
@@ -115,8 +116,8 @@ def cast(scene: Scene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, 
 
     Returns depth (H, W) (inf: no hit), quad id (H, W) int32 (-1), and with ``uv`` the quad
     coordinates u, v (H, W) (metres) and n . ray (H, W); floats of ``dtype``."""
-    rx = ((np.arange(width) + 0.5 - K[0, 2]) / K[0, 0]).astype(dtype)
-    ry = ((np.arange(height) + 0.5 - K[1, 2]) / K[1, 1])[:, None].astype(dtype)
+    rx = ((np.arange(width) + OFFSET - K[0, 2]) / K[0, 0]).astype(dtype)
+    ry = ((np.arange(height) + OFFSET - K[1, 2]) / K[1, 1])[:, None].astype(dtype)
     o, eu, ev, n = _quads_in_camera(scene, R, t)
     dn = np.einsum("ij,ij->i", n, o)
     ou = np.einsum("ij,ij->i", eu, o)
@@ -209,7 +210,7 @@ def _texture_colours(scene: Scene, q: np.ndarray, u, v, depth, den, f: float) ->
                 continue
             img = pyr[k]
             sc = np.float32(2.0 ** -k)
-            c = _remap(img, s[a:b] * sc - 0.5, r[a:b] * sc - 0.5)
+            c = _remap(img, to_opencv_points(s[a:b] * sc), to_opencv_points(r[a:b] * sc))
             wk = (1 - w1[a:b]) if k == lv else w1[a:b]
             acc = c * wk[:, None] if acc is None else acc + c * wk[:, None]
         out[a:b] = acc * scene.albedo[qq]
@@ -220,8 +221,8 @@ def _texture_colours(scene: Scene, q: np.ndarray, u, v, depth, den, f: float) ->
 
 def _sky(scene: Scene, R: np.ndarray, K: np.ndarray, W: int, H: int) -> np.ndarray:
     """Sky colour (H, W, 3) float32 from the elevation of each ray (world z up)."""
-    rx = ((np.arange(W) + 0.5 - K[0, 2]) / K[0, 0]).astype(np.float32)
-    ry = ((np.arange(H) + 0.5 - K[1, 2]) / K[1, 1]).astype(np.float32)
+    rx = ((np.arange(W) + OFFSET - K[0, 2]) / K[0, 0]).astype(np.float32)
+    ry = ((np.arange(H) + OFFSET - K[1, 2]) / K[1, 1]).astype(np.float32)
     # world z of the ray direction: R^T (x, y, 1) . e_z = R[:, 2] . (x, y, 1)
     dz = R[0, 2] * rx[None, :] + R[1, 2] * ry[:, None] + R[2, 2]
     norm = np.sqrt(rx[None, :] ** 2 + ry[:, None] ** 2 + 1.0)

@@ -11,8 +11,8 @@ as the network expects (``p / 128 - 127 / 128``), ``depth`` (1, h, w), ``normals
 keeps K, depth and normals exact; photometric augmentation (exposure, gamma, colour,
 saturation, haze, blur, noise, JPEG) touches only the image.
 
-Views are rendered by :func:`render_pool` with ``rectified_colmap.synth`` when it offers
-``street``/``random_view``/``render``, else with the fallback ray-caster in ``render.py``.
+Views are rendered by :func:`render_pool` with ``rectified_colmap.synth`` (street, corner and
+square scenes, procedural or photo facades, random cameras: :func:`synth_sample`).
 """
 
 from __future__ import annotations
@@ -24,17 +24,32 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .render import Textures, random_sample
+from .. import synth
+from ..conventions import to_opencv_homography
+from ..synth.render import pinhole_K
 
 logger = logging.getLogger(__name__)
 
-_TEXTURES: Textures | None = None
+_TEXTURE_DIR: str | None = None
+
+
+def synth_sample(seed: int, width: int, height: int, texture_dir: str | Path | None = None,
+                 supersample: int = 2) -> dict:
+    """One training view from ``rectified_colmap.synth.random_sample`` in the pool format
+    (see the module docstring), plus ``R`` (3, 3): cam_from_world rotation (the scenes are
+    built on the world axes, so ``R.T``'s rows are the true dominant directions)."""
+    r = synth.random_sample(np.random.default_rng(seed), width, height,
+                            None if texture_dir is None else str(texture_dir), supersample)
+    valid = np.isfinite(r.depth)
+    return {"image": r.image, "depth": np.where(valid, r.depth, 0).astype(np.float32),
+            "normals": np.where(valid[..., None], r.normals, 0).astype(np.float32),
+            "K": pinhole_K(r.camera), "R": r.cam_from_world.rotation.matrix()}
 
 
 def _init_worker(texture_dir):
-    global _TEXTURES
+    global _TEXTURE_DIR
     cv2.setNumThreads(1)
-    _TEXTURES = Textures(texture_dir)
+    _TEXTURE_DIR = None if texture_dir is None else str(texture_dir)
 
 
 def _render_one(args) -> str:
@@ -42,7 +57,7 @@ def _render_one(args) -> str:
     path = Path(out_dir) / f"{seed:08d}.npz"
     if path.exists():
         return str(path)
-    s = random_sample(seed, width, height, _TEXTURES)
+    s = synth_sample(seed, width, height, _TEXTURE_DIR)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, image=s["image"], depth=s["depth"], normals=s["normals"].astype(np.float16),
              K=s["K"])
@@ -87,10 +102,8 @@ def random_zoom_crop(s: dict, rng: np.random.Generator, out_h: int, out_w: int,
     ch, cw = out_h * scale, out_w * scale
     y0, x0 = rng.uniform(0, h - ch), rng.uniform(0, w - cw)
     a = np.array([[1 / scale, 0, -x0 / scale], [0, 1 / scale, -y0 / scale]])
-    # COLMAP convention: continuous coords; output pixel centre (j+.5) <- source x0+(j+.5)*s.
-    # cv2 uses centre-at-0: x_cv = x - 0.5 on both sides.
-    a_cv = a.copy()
-    a_cv[:, 2] += a[:, :2].sum(1) * 0.5 - 0.5
+    # a maps COLMAP coordinates of the source to the output; cv2 wants OpenCV coordinates
+    a_cv = to_opencv_homography(np.vstack([a, [0.0, 0.0, 1.0]]))[:2]
     warp = dict(dsize=(out_w, out_h), borderMode=cv2.BORDER_REPLICATE)
     out = {"image": cv2.warpAffine(s["image"], a_cv, flags=cv2.INTER_AREA if scale > 1.3
                                    else cv2.INTER_LINEAR, **warp),

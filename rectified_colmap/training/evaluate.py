@@ -15,6 +15,14 @@ reference, on the exact rendered depth. Reported (medians over views):
   angle to the nearest (sign-free) true scene axis; ``dir_err_gtdepth`` the same from the
   exact depth.
 Timing: seconds per 1536x1024 image through OnnxDepthSource (1 and 2 threads).
+
+Real photos (``--real SCENE_DIR ...``, COLMAP scenes with ``images/`` and ``sparse/``, e.g.
+Strecha): no true depth, but the Manhattan frame from line segments
+(:func:`rectified_colmap.vp.manhattan_from_image`, consistent across Strecha images to
+~0.3 deg) is an accurate reference for the dominant directions. Per image, over the
+line frame's confident axes: ``dir_err`` = angle (deg) from each axis to the nearest fitted
+direction (mean), ``agree`` = fraction of the pixels with a normal whose normal is within
+15 deg of a confident axis. Cheap enough to run on every checkpoint.
 """
 
 from __future__ import annotations
@@ -28,17 +36,18 @@ from pathlib import Path
 import numpy as np
 
 from ..config import NormalConf, PlaneConf
+from ..conventions import pixel_centers
 from ..normals import backproject, estimate_normals
 from ..planes import fit_dominant_directions
-from .render import Textures, random_sample
+from .data import synth_sample
 
 logger = logging.getLogger(__name__)
 
 
 def rays_from_K(K: np.ndarray, width: int, height: int) -> np.ndarray:
-    jj, ii = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    return np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1],
-                     np.ones_like(jj)], -1).astype(np.float32)
+    xy = pixel_centers(width, height)
+    return np.stack([(xy[..., 0] - K[0, 2]) / K[0, 0], (xy[..., 1] - K[1, 2]) / K[1, 1],
+                     np.ones((height, width))], -1).astype(np.float32)
 
 
 def planar_mask(normals: np.ndarray, depth: np.ndarray, r: int = 3) -> np.ndarray:
@@ -73,11 +82,10 @@ def evaluate(model: str | Path, num: int = 24, seed: int = 900_000_000, width: i
     from ..depth.onnx import OnnxDepthSource
 
     src = OnnxDepthSource(model, providers=["CPUExecutionProvider"], num_threads=threads)
-    textures = Textures(texture_dir) if texture_dir else None
     conf = NormalConf()
     rows = []
     for i in range(num):
-        s = random_sample(seed + i, width, height, textures)
+        s = synth_sample(seed + i, width, height, texture_dir)
         rays = rays_from_K(s["K"], width, height)
         gt_n = s["normals"].astype(np.float64)
         mask = planar_mask(s["normals"], s["depth"])
@@ -95,12 +103,58 @@ def evaluate(model: str | Path, num: int = 24, seed: int = 900_000_000, width: i
             dirs, _ = fit_dominant_directions(n.reshape(-1, 3), PlaneConf(),
                                               np.random.default_rng(0))
             # true scene axes (the scene is axis-aligned): world axes in the camera frame
-            row[f"dir_err_{tag}"] = direction_error(dirs, s["R"])
+            row[f"dir_err_{tag}"] = direction_error(dirs, s["R"].T)
         rows.append(row)
         logger.info("view %d: %s", i, {k: round(v, 2) for k, v in row.items()})
     out = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     out["num_views"] = num
     return out
+
+
+def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
+    """Dominant directions and normals of a depth source vs the line-derived Manhattan frame,
+    on the images of COLMAP scene folders (``images/``, ``sparse/``).
+
+    ``depth_for(path, rgb)`` -> DepthMap of one image (rgb: (H, W, 3) uint8). Images without
+    a confident line frame are skipped. Returns medians/means over images and ``rows``."""
+    import cv2
+    import pycolmap
+
+    from ..config import ExtractConf
+    from ..pipeline import depth_to_normals
+    from ..vp import manhattan_from_image
+
+    conf = ExtractConf()
+    rows = []
+    for scene in map(Path, scene_dirs):
+        rec = pycolmap.Reconstruction(str(scene / "sparse"))
+        for image in sorted(rec.images.values(), key=lambda im: im.name):
+            path = scene / "images" / image.name
+            bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ValueError(f"{path}: cannot read image")
+            camera = rec.cameras[image.camera_id]
+            vp = manhattan_from_image(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), camera, conf.vp)
+            if vp.directions is None:
+                continue  # no reference frame for this image
+            axes = vp.directions[vp.snapped]
+            rgb = np.ascontiguousarray(bgr[..., ::-1])
+            n = depth_to_normals(depth_for(path, rgb), camera, conf).reshape(-1, 3)
+            n = n[np.isfinite(n).all(1)]
+            dirs, _ = fit_dominant_directions(n, conf.planes, np.random.default_rng(0))
+            cos = np.abs(n @ axes.T).max(1)
+            rows.append({"image": f"{scene.name}/{image.name}",
+                         "dir_err": direction_error(axes, dirs) if dirs is not None else 90.0,
+                         "agree": float(np.mean(cos > np.cos(np.deg2rad(agree_deg))))
+                         if len(n) else 0.0})
+            logger.info("%s: %s", rows[-1]["image"],
+                        {k: round(v, 3) for k, v in rows[-1].items() if k != "image"})
+    if not rows:
+        raise ValueError(f"no image with a confident line frame in {list(map(str, scene_dirs))}")
+    return {"real_images": len(rows),
+            "real_dir_err_median": float(np.median([r["dir_err"] for r in rows])),
+            "real_dir_err_mean": float(np.mean([r["dir_err"] for r in rows])),
+            "real_agree_median": float(np.median([r["agree"] for r in rows])), "rows": rows}
 
 
 def time_inference(model: str | Path, threads: int, width: int = 1536, height: int = 1024,
@@ -124,11 +178,21 @@ def main(argv=None) -> int:
     p.add_argument("--texture_dir", type=Path, default=None)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--timing", action="store_true")
+    p.add_argument("--real", type=Path, nargs="*", default=[],
+                   help="COLMAP scene folders (images/, sparse/) of real photos")
     p.add_argument("--output", type=Path, default=None, help="JSON of the results")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     res = evaluate(args.model, args.num, args.seed, texture_dir=args.texture_dir,
                    threads=args.threads)
+    if args.real:
+        from ..depth.onnx import OnnxDepthSource
+
+        src = OnnxDepthSource(args.model, providers=["CPUExecutionProvider"],
+                              num_threads=args.threads)
+        real = evaluate_real(lambda path, rgb: src(rgb), args.real)
+        real.pop("rows")
+        res.update(real)
     if args.timing:
         for t in (1, 2):
             res[f"time_1536x1024_{t}thread_s"] = time_inference(args.model, t)

@@ -42,7 +42,8 @@ def _exporter():
 
 
 def export_onnx(model, output: str | Path, spec: ModelSpec | None = None, height: int = 256,
-                width: int = 320, fp16: bool = False, verify: bool = True) -> dict:
+                width: int = 320, fp16: bool = False, verify: bool = True,
+                fp16_storage: bool = False) -> dict:
     """Write ``model`` (eval mode, positive depth output) to ``output``; returns the
     onnxruntime-vs-torch errors when verified."""
     import onnx
@@ -57,7 +58,8 @@ def export_onnx(model, output: str | Path, spec: ModelSpec | None = None, height
         mod = _exporter()
         if mod is not None:
             return mod.export_depth_onnx(model, output, spec, height=height, width=width,
-                                         dynamic=True, fp16=fp16, verify=verify)
+                                         dynamic=True, fp16=fp16, verify=verify,
+                                         fp16_storage=fp16_storage)
         tmp = output.with_suffix(".raw.onnx")
         x = torch.randn(1, 3, height, width)
         torch.onnx.export(model, (x,), str(tmp), opset_version=17, input_names=["image"],

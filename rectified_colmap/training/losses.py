@@ -15,6 +15,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..conventions import OFFSET
+
 
 def valid_mask(depth: torch.Tensor) -> torch.Tensor:
     return torch.isfinite(depth) & (depth > 0)
@@ -57,8 +59,8 @@ def gradient_loss(pred_log, depth, scales: int = 4):
 def pixel_rays(K, h: int, w: int):
     """(B, 3, h, w) rays with z = 1 through the pixel centres (COLMAP convention)."""
     dev, dt = K.device, K.dtype
-    v, u = torch.meshgrid(torch.arange(h, device=dev, dtype=dt) + 0.5,
-                          torch.arange(w, device=dev, dtype=dt) + 0.5, indexing="ij")
+    v, u = torch.meshgrid(torch.arange(h, device=dev, dtype=dt) + OFFSET,
+                          torch.arange(w, device=dev, dtype=dt) + OFFSET, indexing="ij")
     x = (u[None] - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None]
     y = (v[None] - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None]
     return torch.stack([x, y, torch.ones_like(x)], 1)
