@@ -73,6 +73,27 @@ class RectifyConf:
 
 
 @dataclass
+class DedupConf:
+    """Near-duplicate keypoints (rectified_colmap.dedup): one feature per location and scale."""
+
+    enabled: bool = True
+    """Drop near-duplicates between plain SIFT and rectified patches (and between patches)
+    and fill the budget from plain SIFT. Off: the concatenation as before (issue 9)."""
+    radius_px: float = 1.0
+    """Two keypoints closer than this (original-image pixels) may be twins..."""
+    min_cosine: float = 0.9
+    """...when their descriptors' cosine similarity exceeds this..."""
+    max_scale_ratio: float = 1.5
+    """...and their scales (sqrt |det A|) are within this factor."""
+    only_across: bool = True
+    """Only twins from different sources (plain SIFT, patch k): SIFT's own twins inside one
+    detection (e.g. orientations) are left as plain COLMAP SIFT has them."""
+    keep_rectified_tilt_deg: float = 25.0
+    """Of two twins the rectified one is kept where its patch is seen more obliquely than
+    this there (frame anisotropy > 1 / cos), else the plain one."""
+
+
+@dataclass
 class SiftConf:
     """SIFT (COLMAP's, through pycolmap) and the feature budget."""
 
@@ -178,6 +199,7 @@ class ExtractConf:
     sift: SiftConf = field(default_factory=SiftConf)
     depth: DepthConf = field(default_factory=DepthConf)
     vp: VpConf = field(default_factory=VpConf)
+    dedup: DedupConf = field(default_factory=DedupConf)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

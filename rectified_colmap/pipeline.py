@@ -19,6 +19,7 @@ import pycolmap
 
 from . import camera as cam_utils
 from .config import ExtractConf
+from .dedup import fill_from_plain
 from .depth import DepthMap, resample_depth
 from .features import Features, detect_sift, keypoints_in_mask, split_budget
 from .normals import backproject, estimate_normals
@@ -266,8 +267,12 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
 
     parts = []
     t0 = time.perf_counter()
-    if budgets[0] > 0:
-        parts.append(plain_features(gray, plain_region, int(budgets[0]), conf))
+    # With dedup, plain SIFT is detected with the whole budget: the pool that fills what
+    # the patches leave (COLMAP keeps the largest scales, so a smaller budget is a subset).
+    plain_budget = total if conf.dedup.enabled else int(budgets[0])
+    plain = Features.empty()
+    if plain_budget > 0 and plain_region.any():
+        plain = plain_features(gray, plain_region, plain_budget, conf)
     t["sift_plain"] = time.perf_counter() - t0
     t["warps+sift_patches"] = 0.0
     for i, rect in enumerate(rects):
@@ -275,5 +280,13 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
         parts.append(rectified_features(gray, camera, rect, rect.patch_index,
                                         int(budgets[i + 1]), conf))
         t["warps+sift_patches"] += time.perf_counter() - t0
-    result.features = Features.concatenate(parts)
+    if not conf.dedup.enabled:
+        result.features = Features.concatenate([plain] + parts)
+        return result
+    t0 = time.perf_counter()
+    # Target: as many keypoints as plain SIFT keeps with the whole budget on the image.
+    region_frac = plain_region.mean()
+    target = round(len(plain) / region_frac) if region_frac > 0 else total
+    result.features = fill_from_plain(Features.concatenate(parts), plain, target, conf.dedup)
+    t["dedup"] = time.perf_counter() - t0
     return result

@@ -66,6 +66,9 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     else:
         depth_model = args.depth_model or DEFAULT_DEPTH_MODEL
         overrides = json.loads(args.rect_conf) if args.rect_conf else {}
+        if method in args.variants:  # a named variant: its overrides on top of --rect_conf
+            for section, values in args.variants[method].items():
+                overrides[section] = {**overrides.get(section, {}), **values}
         conf = {**overrides, "sift": {**overrides.get("sift", {}), **sift}}
         kw = dict(conf=conf, depth_model=depth_model, depth_path=args.depth_path)
     t = time.perf_counter()
@@ -92,6 +95,10 @@ def main(argv=None) -> int:
     p.add_argument("--rect_conf", default=None,
                    help='JSON overrides of the extraction conf for rectsift, e.g. '
                         '\'{"rectify": {"keep_plain": false}}\'')
+    p.add_argument("--variant", action="append", default=[], metavar="NAME=JSON",
+                   help="an extra rectsift method NAME with these conf overrides (on top of "
+                        "--rect_conf), evaluated beside --methods, e.g. "
+                        "'nodedup={\"dedup\": {\"enabled\": false}}'; repeatable")
     p.add_argument("--bin_deg", type=float, default=10.0)
     p.add_argument("--ransac_max_error", type=float, default=None)
     p.add_argument("--num_workers", type=int, default=2)
@@ -99,6 +106,12 @@ def main(argv=None) -> int:
     p.add_argument("--no_plot", action="store_true")
     p.add_argument("--no_progress", action="store_true")
     args = p.parse_args(argv)
+    args.variants = {}
+    for spec in args.variant:
+        name, sep, js = spec.partition("=")
+        if not sep or not name or name in METHODS or name in args.variants:
+            raise SystemExit(f"--variant {spec!r}: expected a new NAME=JSON")
+        args.variants[name] = json.loads(js)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     if not args.data.is_dir():
         raise SystemExit(f"--data {args.data}: not a directory")
@@ -115,7 +128,8 @@ def main(argv=None) -> int:
 
     records, loc_rows = [], {}
     for scene in scenes:
-        feats = {m: extract_method(scene, m, out, args) for m in args.methods}
+        feats = {m: extract_method(scene, m, out, args)
+                 for m in list(args.methods) + list(args.variants)}
         pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
         recs = evaluate_pairs(pairs, feats, conf, args.num_workers,
                               progress=not args.no_progress)

@@ -1,0 +1,143 @@
+"""Near-duplicate keypoints: grid-hash neighbours, twin rules, budget fill, and the pipeline."""
+
+import numpy as np
+import pytest
+
+from rectified_colmap import camera as cam_utils
+from rectified_colmap.config import DedupConf, ExtractConf
+from rectified_colmap.dedup import (duplicate_fraction, duplicate_pairs, fill_from_plain,
+                                    frame_anisotropy, near_duplicate_mask, neighbour_pairs)
+from rectified_colmap.depth import DepthMap
+from rectified_colmap.features import Features, detect_sift, similarity_frames
+from rectified_colmap.pipeline import extract_image
+from tests.conftest import look_at, plane_view, textured_image
+
+
+def brute_pairs(xy, r):
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    i, j = np.nonzero(np.triu(d < r, 1))
+    return {(a, b) for a, b in zip(i.tolist(), j.tolist())}
+
+
+@pytest.mark.parametrize("radius", [0.5, 1.0, 3.0])
+def test_neighbour_pairs_equal_brute_force(radius):
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 40, (600, 2))
+    xy[:100] = xy[100:200] + rng.normal(0, 0.4, (100, 2))  # many near twins
+    xy[200:210] = xy[210:220]  # exact coincidences
+    xy[300] = [np.nan, 3.0]  # ignored
+    xy[301] = -xy[301]  # negative coordinates too
+    got = {tuple(p) for p in neighbour_pairs(xy, radius).tolist()}
+    ok = np.isfinite(xy).all(1)
+    ref = brute_pairs(np.where(ok[:, None], xy, 1e9), radius)
+    assert got == ref and len(ref) > 100
+
+
+def test_neighbour_pairs_at_cell_boundaries():
+    # Distances just under / over the radius across cell borders (cells of side radius).
+    xy = np.array([[0.999, 0.0], [1.998, 0.0], [5.0, 5.0], [6.0, 5.0], [2.999, 2.999],
+                   [3.7, 3.7]])
+    got = {tuple(p) for p in neighbour_pairs(xy, 1.0).tolist()}
+    assert got == {(0, 1), (4, 5)}  # (2, 3) are exactly 1 apart: not closer than 1
+
+
+def make_features(xy, scales, angles, desc, patch, stretch=None):
+    shapes = similarity_frames(np.asarray(scales, float), np.asarray(angles, float))
+    if stretch is not None:  # rectified keypoints: A = J A_rect with J = diag(1, cos tilt)
+        shapes = np.asarray(stretch) @ shapes
+    return Features(np.asarray(xy, float), shapes, np.asarray(desc, np.uint8),
+                    np.asarray(patch, np.int32))
+
+
+def random_desc(rng, n):
+    return rng.integers(0, 256, (n, 128)).astype(np.uint8)
+
+
+def test_twin_rules_location_descriptor_scale_source():
+    rng = np.random.default_rng(2)
+    d = random_desc(rng, 6)
+    desc = np.concatenate([d, d])  # index k and k + 6 share a descriptor
+    desc[11] = 255 - desc[11]  # ...except pair (5, 11): different descriptor
+    xy = np.array([[10, 10], [30, 10], [50, 10], [70, 10], [90, 10], [110, 10]], float)
+    xy2 = xy + [[0.5, 0], [1.5, 0], [0, 0.3], [0.2, 0.2], [0.1, 0], [0, 0]]
+    scales = [2, 2, 2, 2, 2, 2] + [2.2, 2, 5, 2, 2, 2]
+    patch = [-1] * 6 + [0, 0, 0, 0, -1, 0]
+    f = make_features(np.concatenate([xy, xy2]), scales, np.zeros(12), desc, patch)
+    got = {tuple(p) for p in duplicate_pairs(f, DedupConf()).tolist()}
+    # 0: twin; 1: 1.5 px away; 2: scale x2.5; 3: twin; 4: same source; 5: other descriptor
+    assert got == {(0, 6), (3, 9)}
+    got_all = {tuple(p) for p in duplicate_pairs(f, DedupConf(), only_across=False).tolist()}
+    assert got_all == {(0, 6), (3, 9), (4, 10)}
+
+
+def test_oblique_patch_keeps_the_rectified_twin_frontal_keeps_plain():
+    rng = np.random.default_rng(3)
+    d = random_desc(rng, 2)
+    conf = DedupConf(keep_rectified_tilt_deg=25.0)
+    for tilt, rect_wins in ((60.0, True), (10.0, False)):
+        J = np.diag([1.0, np.cos(np.deg2rad(tilt))])
+        plain = make_features([[5, 5], [20, 5]], [2, 2], [0, 0], d, [-1, -1])
+        rect = make_features([[5.2, 5], [20, 5.1]], [2, 2], [0.3, 0.3], d, [1, 1], J)
+        assert np.allclose(frame_anisotropy(rect.shapes), 1 / np.cos(np.deg2rad(tilt)))
+        for order in ((plain, rect), (rect, plain)):  # independent of the order
+            both = Features.concatenate(list(order))
+            keep = near_duplicate_mask(both, conf)
+            assert keep.sum() == 2
+            assert np.all((both.patch[keep] >= 0) == rect_wins)
+
+
+def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
+    rng = np.random.default_rng(4)
+    n = 200
+    xy = rng.uniform(0, 500, (n, 2))
+    plain = make_features(xy, rng.uniform(1, 10, n), np.zeros(n), random_desc(rng, n),
+                          np.full(n, -1))
+    # 30 rectified twins of plain keypoints (oblique: they win) and 20 new rectified ones.
+    tw = rng.choice(n, 30, replace=False)
+    J = np.diag([1.0, 0.5])
+    rect = Features.concatenate([
+        make_features(xy[tw] + 0.3, plain.scales[tw], np.zeros(30), plain.descriptors[tw],
+                      np.zeros(30), J @ np.eye(2) / np.sqrt(0.5)),
+        make_features(rng.uniform(0, 500, (20, 2)), np.full(20, 3.0), np.zeros(20),
+                      random_desc(rng, 20), np.zeros(20))])
+    out = fill_from_plain(rect, plain, n, DedupConf())
+    assert len(out) == n
+    assert (out.patch >= 0).sum() == 50  # every rectified feature kept
+    kept_plain = out.subset(out.patch < 0)
+    assert duplicate_fraction(out) == 0.0
+    assert duplicate_fraction(Features.concatenate([plain, rect])) > 0.2
+    # The 30 twins removed, then the 20 smallest remaining plain scales.
+    rest = np.setdiff1d(np.arange(n), tw)
+    expect = np.sort(rest[np.argsort(-plain.scales[rest], kind="stable")[:150]])
+    got = np.sort([np.flatnonzero((plain.keypoints == k).all(1))[0]
+                   for k in kept_plain.keypoints])
+    np.testing.assert_array_equal(got, expect)
+    # Patches that yield nothing leave the whole budget to plain SIFT.
+    assert len(fill_from_plain(Features.empty(), plain, 150, DedupConf())) == 150
+    assert len(fill_from_plain(Features.empty(), plain, 500, DedupConf())) == n
+
+
+K = np.array([[420.0, 0, 240], [0, 420, 180], [0, 0, 1]])
+SIZE = (480, 360)
+CAMERA = cam_utils.make_camera("PINHOLE", [420, 420, 240, 180], *SIZE)
+
+
+def test_pipeline_output_has_no_cross_source_twins_and_plain_sift_count():
+    """A mildly tilted plane (the case that made twins): with dedup the output has no twin
+    between plain and rectified keypoints and as many keypoints as plain SIFT; without it,
+    a large fraction are twins."""
+    texture = textured_image(900, 900, 11)
+    R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])  # ~40 degrees from the plane normal
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    conf = ExtractConf()
+    conf.sift.max_num_features = 2000
+    plain = detect_sift(img, conf.sift)
+    on = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    conf.dedup.enabled = False
+    off = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    assert (on.patch >= 0).sum() > 200 and (on.patch < 0).sum() > 200
+    before, after = duplicate_fraction(off), duplicate_fraction(on)
+    assert before > 0.05
+    assert len(duplicate_pairs(on, DedupConf())) == 0
+    assert after <= duplicate_fraction(plain) + 0.01
+    assert len(on) == len(plain)
