@@ -71,14 +71,27 @@ def grid_rays(camera: pycolmap.Camera, width: int, height: int) -> np.ndarray:
     return image_to_rays(camera, xy.reshape(-1, 2)).reshape(height, width, 3)
 
 
+def num_params(model: str) -> int:
+    """Number of parameters of a COLMAP camera model; ValueError for an unknown name."""
+    try:
+        return len(pycolmap.Camera.create_from_model_name(1, model, 1.0, 1, 1).params)
+    except Exception:
+        known = ", ".join(m.name for m in pycolmap.CameraModelId.__members__.values()
+                          if m.name != "INVALID")
+        raise ValueError(f"unknown camera model {model!r}; COLMAP's are {known}") from None
+
+
 def make_camera(model: str, params: list[float] | np.ndarray, width: int, height: int
                 ) -> pycolmap.Camera:
     """A camera from COLMAP's model name and parameter list (COLMAP order and convention)."""
+    expected = num_params(model)
+    if len(params) != expected:
+        raise ValueError(f"camera model {model} takes {expected} params, got {len(params)}: "
+                         f"{list(params)}")
     cam = pycolmap.Camera(model=model, width=int(width), height=int(height),
                           params=[float(p) for p in params])
-    if not cam.verify_params():
-        raise ValueError(f"camera model {model} takes {len(cam.params)} params, "
-                         f"got {len(params)}: {list(params)}")
+    if not cam.verify_params() or not np.isfinite(cam.params).all():
+        raise ValueError(f"camera model {model}: invalid params {list(params)}")
     return cam
 
 

@@ -12,10 +12,24 @@ from ``camera_model``/``camera_params``, or from EXIF (pycolmap.infer_camera_fro
 Depth comes from a file under ``depth_path`` when there is one, else from the depth network
 (``depth_model``, the embedded default unless "none"), else the image gets plain SIFT.
 
-Every image is committed on its own (database transaction, staged HDF5 group), so an
-interrupted run leaves valid files and the next run resumes (images that already have
-features are skipped unless ``overwrite``). A bad image is reported and skipped; the rest of
-the work goes on.
+Users' data is never lost or silently changed (docs/usage.md "What is written, and when"):
+
+- Everything that can be checked is checked before anything is written (image folder,
+  camera model and parameters, depth folder, depth model, output paths writable, output
+  files valid), and reported in one line naming the file and the cause.
+- Outputs are only added to. Without ``overwrite`` an image that already has features in
+  one output is never re-extracted: if the other output lacks it, that one gets a copy of
+  the same features (database -> hloc file or back), whoever extracted them. Features that
+  another extractor wrote (e.g. ``colmap feature_extractor``) are kept and reported once.
+  ``overwrite`` re-extracts, and announces at WARNING how many match and two-view geometry
+  rows that deletes.
+- One writer per output file (a lock, rectified_colmap.io.lock): a second run on the same
+  files waits for the first, then resumes after it.
+- Every image is committed on its own: its camera (when new), its row and its features in
+  one database transaction, a staged HDF5 group. An interrupted run leaves valid files and
+  a failed image leaves no row behind. Per-image problems (unreadable or truncated image,
+  unusable depth) are reported with the image's name relative to ``image_dir``, listed in
+  the summary, and the run goes on; ``Summary.ok`` is False when any image failed.
 """
 
 from __future__ import annotations
@@ -46,10 +60,20 @@ DEFAULT_DEPTH_MODEL = "rectsift-lite0"
 @dataclass
 class Summary:
     done: list[str] = field(default_factory=list)
+    """Images extracted in this run."""
+    copied: dict[str, str] = field(default_factory=dict)
+    """Images whose existing features were copied into the output that lacked them:
+    name -> "database -> hloc" or "hloc -> database"."""
     skipped: list[str] = field(default_factory=list)
+    """Images that already had features in every output."""
     failed: dict[str, str] = field(default_factory=dict)
+    warnings: dict[str, list[str]] = field(default_factory=dict)
     plain: list[str] = field(default_factory=list)
     """Images that got plain SIFT (no depth or no usable plane)."""
+    foreign: dict[str, int] = field(default_factory=dict)
+    """Output path -> number of listed images whose features another extractor wrote."""
+    deleted_matches: tuple[int, int] = (0, 0)
+    """(match rows, two-view geometry rows) deleted by ``overwrite``."""
     num_keypoints: int = 0
     seconds: float = 0.0
 
@@ -57,42 +81,97 @@ class Summary:
     def ok(self) -> bool:
         return not self.failed
 
+    def warn(self, name: str, message: str) -> None:
+        self.warnings.setdefault(name, []).append(message)
+        logger.warning("%s: %s", name, message)
+
     def report(self) -> str:
         n = len(self.done)
-        lines = [f"images: {n} done, {len(self.skipped)} skipped (already had features), "
+        lines = [f"images: {n} extracted, {len(self.copied)} copied between outputs, "
+                 f"{len(self.skipped)} skipped (already had features), "
                  f"{len(self.failed)} failed",
                  f"keypoints: {self.num_keypoints} ({self.num_keypoints / max(n, 1):.0f} per "
                  f"image); {len(self.plain)} image(s) with plain SIFT only",
                  f"time: {self.seconds:.1f} s ({self.seconds / max(n, 1):.2f} s per image)"]
+        lines += [f"kept {k} image(s) with features from another extractor in {path}"
+                  for path, k in self.foreign.items() if k]
+        if any(self.deleted_matches):
+            lines.append(f"deleted {self.deleted_matches[0]} match and "
+                         f"{self.deleted_matches[1]} two-view geometry rows (--overwrite)")
+        lines += [f"WARNING {name}: {w}" for name, ws in self.warnings.items() for w in ws]
         lines += [f"FAILED {name}: {why}" for name, why in self.failed.items()]
         return "\n".join(lines)
 
 
+class ImageError(ValueError):
+    """A problem with one image (its cause only; the caller adds the image's name)."""
+
+
 def list_images(image_dir: Path, image_list: Path | list[str] | None = None) -> list[str]:
-    """Names (relative, '/'-separated) of the images to process, sorted like COLMAP."""
+    """Names (relative, '/'-separated) of the images to process, sorted like COLMAP.
+
+    A name listed twice is processed once."""
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
-        raise FileNotFoundError(f"image path {image_dir} is not a directory")
+        raise FileNotFoundError(f"{image_dir}: image path is not a folder")
     if image_list is not None:
         if isinstance(image_list, (str, Path)):
-            text = Path(image_list).read_text().splitlines()
+            try:
+                text = Path(image_list).read_text().splitlines()
+            except (OSError, UnicodeDecodeError) as e:
+                raise FileNotFoundError(f"{image_list}: cannot read the image list "
+                                        f"({type(e).__name__}: {e})") from None
             names = [ln.strip() for ln in text if ln.strip() and not ln.startswith("#")]
         else:
             names = list(image_list)
-        return names
+        unique = list(dict.fromkeys(names))
+        if len(unique) < len(names):
+            logger.warning("%s: %d duplicate name(s) in the image list, each processed once",
+                           image_list if isinstance(image_list, (str, Path)) else "image list",
+                           len(names) - len(unique))
+        return unique
     names = [p.relative_to(image_dir).as_posix() for p in image_dir.rglob("*")
              if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()]
     return sorted(names)
 
 
-def read_image(path: Path) -> np.ndarray:
-    """RGB uint8 (H, W, 3), EXIF orientation ignored (as COLMAP reads pixels)."""
+def decode_image(path: Path) -> tuple[np.ndarray, list[str]]:
+    """-> (RGB uint8 (H, W, 3), warnings). EXIF orientation ignored (as COLMAP reads pixels).
+
+    Raises ImageError (cause only) when the file is missing or cannot be decoded. A JPEG
+    without its end-of-image marker (truncated: the decoder fills the rest with grey) is
+    decoded with a warning."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError("no such image file")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
-        if not Path(path).exists():
-            raise FileNotFoundError(f"{path}: no such image file")
-        raise ValueError(f"{path}: cannot decode image (corrupt or unsupported format)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        raise ImageError("cannot decode image (corrupt or unsupported format)")
+    warnings = []
+    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
+        warnings.append("truncated JPEG (no end-of-image marker): the missing part decodes "
+                        "as grey")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), warnings
+
+
+def _jpeg_complete(path: Path) -> bool:
+    """Whether a JPEG file ends with its EOI marker (FF D9), trailing padding allowed."""
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 4096))
+        tail = f.read().rstrip(b"\0\r\n ")
+    return tail.endswith(b"\xff\xd9")
+
+
+def read_image(path: Path) -> np.ndarray:
+    """RGB uint8 (H, W, 3), EXIF orientation ignored (as COLMAP reads pixels). Raises
+    FileNotFoundError / ValueError naming the file."""
+    try:
+        return decode_image(path)[0]
+    except ImageError as e:
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{path}: {e}") from None
+        raise ValueError(f"{path}: {e}") from None
 
 
 # ---------------------------------------------------------------------------------------
@@ -108,69 +187,115 @@ def quiet_pycolmap() -> None:
         pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 1)
 
 
-def _init_worker(depth_path, depth_kind, png_scale, depth_model, model_threads):
-    cv2.setNumThreads(1)
-    quiet_pycolmap()
-    _WORKER.clear()
-    _WORKER["files"] = None
-    _WORKER["network"] = None
+def _depth_sources(depth_path, depth_kind, png_scale, depth_model, model_threads) -> dict:
+    """{"files": FileDepthSource | None, "network": OnnxDepthSource | None}; raises with a
+    one-line message naming the folder or model when one cannot be used."""
+    sources = {"files": None, "network": None}
     if depth_path is not None:
         from .depth.files import FileDepthSource
 
-        _WORKER["files"] = FileDepthSource(depth_path, kind=depth_kind, png_scale=png_scale)
+        sources["files"] = FileDepthSource(depth_path, kind=depth_kind, png_scale=png_scale)
     if depth_model not in (None, "none"):
         from .depth.registry import load_depth_source
 
-        _WORKER["network"] = load_depth_source(depth_model, num_threads=model_threads)
+        try:
+            sources["network"] = load_depth_source(depth_model, num_threads=model_threads)
+        except Exception as e:  # unknown name, missing or corrupt file, onnxruntime errors
+            msg = str(e)
+            if str(depth_model) not in msg:
+                msg = f"depth model {depth_model}: {msg}"
+            raise ValueError(f"--depth_model: {msg}") from e
+    return sources
+
+
+def _init_worker(depth_path, depth_kind, png_scale, depth_model, model_threads,
+                 sources: dict | None = None):
+    cv2.setNumThreads(1)
+    quiet_pycolmap()
+    _WORKER.clear()
+    _WORKER.update(sources if sources is not None else
+                   _depth_sources(depth_path, depth_kind, png_scale, depth_model,
+                                  model_threads))
 
 
 def _process(name: str, path: Path, camera: pycolmap.Camera, conf: ExtractConf,
-             keep_details: bool) -> tuple[str, ImageResult | None, str, str | None]:
-    """-> (name, result, depth origin, error message)."""
+             keep_details: bool
+             ) -> tuple[str, ImageResult | None, str, str | None, list[str]]:
+    """-> (name, result, depth origin, error message, warnings); messages without the
+    image's name (the caller adds it)."""
+    warnings: list[str] = []
     try:
-        rgb = read_image(path)
+        rgb, warnings = decode_image(path)
         H, W = rgb.shape[:2]
         if (W, H) != (camera.width, camera.height):
-            raise ValueError(f"{path}: image is {W}x{H} but its camera is "
+            raise ImageError(f"image is {W}x{H} but its camera is "
                              f"{camera.width}x{camera.height}")
         depth, origin = None, "none"
-        if _WORKER.get("files") is not None:
-            depth = _WORKER["files"](rgb, camera, name)
-            origin = "file" if depth is not None else origin
-        if depth is None and _WORKER.get("network") is not None:
-            depth = _WORKER["network"](rgb, camera, name)
-            origin = "network" if depth is not None else origin
+        for kind in ("files", "network"):
+            source = _WORKER.get(kind)
+            if depth is None and source is not None:
+                depth = source(rgb, camera, name)
+                problem = None if depth is None else depth.problem()
+                if problem is not None:
+                    what = "depth file" if kind == "files" else "depth network"
+                    warnings.append(f"unusable depth from the {what} ({problem}): ignored")
+                    depth = None
+                origin = kind if depth is not None else origin
         seed = int.from_bytes(name.encode()[-8:].rjust(8, b"\0"), "little") % (2**32)
         result = extract_image(rgb, camera, depth, conf, np.random.default_rng(seed))
         if not keep_details:
             result = ImageResult(result.features, timings=result.timings)
-        return name, result, origin, None
+        return name, result, origin, None, warnings
     except Exception as e:  # reported per image; the run goes on
         logger.debug("failure on %s", name, exc_info=True)
-        return name, None, "none", f"{type(e).__name__}: {e}"
+        msg = str(e) if isinstance(e, ImageError) else f"{type(e).__name__}: {e}"
+        return name, None, "none", msg, warnings
 
 
 # ---------------------------------------------------------------------------------------
 # Cameras
 
 
-def _camera_for(path: Path, model: str | None, params: list[float] | None) -> tuple:
+@dataclass
+class _Camera:
+    """A camera of the run; ``camera_id`` stays None until its first image is written
+    (the camera row goes into that image's transaction: no orphan camera rows)."""
+    camera: pycolmap.Camera
+    prior: bool
+    camera_id: int | None = None
+
+
+def _new_camera(path: Path, model: str | None, params: list[float] | None) -> _Camera:
     if model and params:
         h, w = _image_size(path)
-        return cam_utils.make_camera(model, params, w, h), True
-    cam, has_prior = cam_utils.infer_camera(path, model or "SIMPLE_RADIAL")
-    if not has_prior:
-        logger.warning("%s: no focal length in EXIF; guessing %.1f px (1.2 x max side), as "
-                       "COLMAP does. Pass --camera_params for better planes.",
-                       path.name, cam.mean_focal_length())
-    return cam, has_prior
+        return _Camera(cam_utils.make_camera(model, params, w, h), True)
+    if not path.is_file():
+        raise ImageError("no such image file")
+    try:
+        cam, has_prior = cam_utils.infer_camera(path, model or "SIMPLE_RADIAL")
+    except ValueError:
+        raise ImageError("cannot decode image (corrupt or unsupported format)") from None
+    return _Camera(cam, has_prior)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
+    """(H, W) of an image file."""
+    if not path.is_file():
+        raise ImageError("no such image file")
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
-        raise ValueError(f"{path}: cannot decode image")
+        raise ImageError("cannot decode image (corrupt or unsupported format)")
     return img.shape[:2]
+
+
+def _check_camera_args(camera_model: str | None, camera_params) -> None:
+    """One-line errors for a bad --camera_model / --camera_params before anything runs."""
+    if camera_params and not camera_model:
+        raise ValueError("--camera_params needs --camera_model")
+    if camera_model:
+        cam_utils.num_params(camera_model)  # raises for an unknown model
+        if camera_params:
+            cam_utils.make_camera(camera_model, camera_params, 100, 100)
 
 
 # ---------------------------------------------------------------------------------------
@@ -184,12 +309,16 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
             single_camera: bool = False, conf: ExtractConf | dict | None = None,
             num_workers: int = 1, overwrite: bool = False, visualize: Path | None = None,
             progress: bool = True) -> Summary:
-    """Extract rectified SIFT for a folder of images; see the module docstring."""
+    """Extract rectified SIFT for a folder of images; see the module docstring.
+
+    Raises (one-line message naming the file and the cause) before writing anything when
+    an argument, an input folder, the depth model or an output cannot be used."""
     if database is None and hloc_features is None:
         raise ValueError("nothing to write: give a database and/or an hloc feature file")
     conf = conf if isinstance(conf, ExtractConf) else ExtractConf.from_dict(conf)
     if isinstance(camera_params, str):
         camera_params = cam_utils.parse_camera_params(camera_params)
+    _check_camera_args(camera_model, camera_params)
     image_dir = Path(image_dir)
     names = list_images(image_dir, image_list)
     summary = Summary()
@@ -200,73 +329,44 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
 
     from .io.colmap_db import ColmapDatabase
     from .io.hloc_h5 import HlocFeatureWriter
+    from .io.lock import check_writable
 
-    db = ColmapDatabase(database) if database is not None else None
-    h5 = HlocFeatureWriter(hloc_features) if hloc_features is not None else None
+    for path, what in ((database, "database"), (hloc_features, "feature file")):
+        if path is not None:
+            check_writable(path, what)
+    init = (depth_path, depth_kind, png_scale, depth_model, 1 if num_workers > 1 else None)
+    sources = _depth_sources(*init)  # fails here, before any output is touched
+    if num_workers > 1:
+        sources = None  # each worker loads its own
+
+    h5 = db = None
     try:
-        # 1. Cameras and the work list (main process: the database is ours alone).
-        todo: list[tuple[str, Path, pycolmap.Camera, int | None]] = []
-        shared_cam: tuple | None = None
-        for name in names:
-            path = image_dir / name
-            try:
-                image_id, camera = None, None
-                if db is not None:
-                    found = db.find_image(name)
-                    if found is not None:
-                        image_id = found[0]
-                        camera = db.get_camera(found[1])
-                        if single_camera and shared_cam is None:  # resumed run
-                            shared_cam = (camera, camera.has_prior_focal_length, found[1])
-                done_db = db is None or (image_id is not None and db.has_features(image_id))
-                done_h5 = h5 is None or h5.has(name)
-                if done_db and done_h5 and not overwrite:
-                    summary.skipped.append(name)
-                    continue
-                if camera is None:
-                    if not path.is_file():
-                        raise FileNotFoundError(f"{path}: no such image file")
-                    if single_camera and shared_cam is not None:
-                        camera, prior, cam_id = shared_cam
-                        h, w = _image_size(path)
-                        if (w, h) != (camera.width, camera.height):
-                            raise ValueError(f"{path}: {w}x{h} differs from the single "
-                                             f"camera's {camera.width}x{camera.height}")
-                    else:
-                        camera, prior = _camera_for(path, camera_model, camera_params)
-                        cam_id = db.add_camera(camera, prior) if db is not None else None
-                        if single_camera:
-                            shared_cam = (camera, prior, cam_id)
-                    if db is not None:
-                        image_id = db.add_image(name, cam_id)
-                        camera.camera_id = cam_id
-                todo.append((name, path, camera, image_id))
-            except Exception as e:
-                summary.failed[name] = f"{type(e).__name__}: {e}"
-                logger.error("%s: %s", name, summary.failed[name])
+        h5 = HlocFeatureWriter(hloc_features) if hloc_features is not None else None
+        db = ColmapDatabase(database) if database is not None else None
+        todo = _plan(names, image_dir, db, h5, camera_model, camera_params, single_camera,
+                     overwrite, summary)
 
-        # 2. Features, in worker processes when asked.
-        init = (depth_path, depth_kind, png_scale, depth_model, 1 if num_workers > 1 else None)
+        # Features, in worker processes when asked.
         keep = visualize is not None
-        ids = {name: image_id for name, _, _, image_id in todo}
-        cams = {name: camera for name, _, camera, _ in todo}
         bar = tqdm(total=len(todo), desc="rectified SIFT", unit="img", disable=not progress)
+        store = _Store(db, h5, todo, summary, overwrite, visualize, image_dir)
         if num_workers > 1 and len(todo) > 1:
             os.environ.setdefault("OMP_NUM_THREADS", "1")
-            with ProcessPoolExecutor(num_workers, initializer=_init_worker, initargs=init) as ex:
-                futures = [ex.submit(_process, n, p, c, conf, keep) for n, p, c, _ in todo]
+            with ProcessPoolExecutor(num_workers, initializer=_init_worker,
+                                     initargs=init) as ex:
+                futures = [ex.submit(_process, n, image_dir / n, c.camera, conf, keep)
+                           for n, c in todo.items()]
                 for fut in futures:
-                    _store(fut.result(), db, h5, ids, cams, summary, overwrite, visualize,
-                           image_dir)
+                    store(fut.result())
                     bar.update()
         else:
-            _init_worker(*init)
-            for n, p, c, _ in todo:
-                _store(_process(n, p, c, conf, keep), db, h5, ids, cams, summary, overwrite,
-                       visualize, image_dir)
+            _init_worker(*init, sources=sources)
+            for n, c in todo.items():
+                store(_process(n, image_dir / n, c.camera, conf, keep))
                 bar.update()
         bar.close()
     finally:
+        _WORKER.clear()
         if h5 is not None:
             h5.close()
         if db is not None:
@@ -275,32 +375,146 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
     return summary
 
 
-def _store(out, db, h5, ids, cams, summary: Summary, overwrite: bool, visualize, image_dir):
-    name, result, origin, error = out
-    if error is not None:
-        summary.failed[name] = error
-        logger.error("%s: %s", name, error)
-        return
-    feats = result.features
-    camera = cams[name]
-    try:
-        if db is not None:
-            db.write_features(ids[name], feats, overwrite=True)
-        if h5 is not None:
-            h5.write(name, feats, (camera.width, camera.height), overwrite=True)
-    except Exception as e:
-        summary.failed[name] = f"writing features: {type(e).__name__}: {e}"
-        logger.error("%s: %s", name, summary.failed[name])
-        return
-    summary.done.append(name)
-    summary.num_keypoints += len(feats)
-    if not (feats.patch >= 0).any():
-        summary.plain.append(name)
-    if visualize is not None and result.planes is not None:
-        from .viz import save_visualizations
+def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params,
+          single_camera: bool, overwrite: bool, summary: Summary) -> dict[str, _Camera]:
+    """Decide per image: skip, copy between outputs (done here), or extract.
 
+    Returns the images to extract with their cameras."""
+    from .io import hloc_h5
+
+    todo: dict[str, _Camera] = {}
+    shared: _Camera | None = None
+    guessed: list[str] = []
+    cameras: dict[int, _Camera] = {}  # database cameras by id
+    ours = db.ours() if db is not None else set()
+    foreign_h5 = h5.foreign() if h5 is not None else set()
+    foreign_db: list[str] = []
+    foreign_in_h5: list[str] = []
+    replaced: list[int] = []
+    for name in names:
+        path = image_dir / name
         try:
-            save_visualizations(Path(visualize), name, read_image(image_dir / name), camera,
-                                result)
-        except Exception as e:  # a picture must never fail the extraction
-            logger.warning("%s: visualisation failed: %s", name, e)
+            found = db.find_image(name) if db is not None else None
+            in_db = found is not None and db.has_features(found[0])
+            in_h5 = h5 is not None and h5.has(name)
+            if in_db and found[0] not in ours:
+                foreign_db.append(name)
+            if in_h5 and name in foreign_h5:
+                foreign_in_h5.append(name)
+            if found is not None and found[1] not in cameras:
+                cam = db.get_camera(found[1])
+                cameras[found[1]] = _Camera(cam, cam.has_prior_focal_length, found[1])
+            if found is not None and single_camera and shared is None:  # resumed run
+                shared = cameras[found[1]]
+            if not overwrite:
+                if (db is None or in_db) and (h5 is None or in_h5):
+                    summary.skipped.append(name)
+                    continue
+                if in_db:  # the hloc file lacks it: the database's features, as they are
+                    cam = cameras[found[1]].camera
+                    h5.write(name, db.read_features(found[0]), (cam.width, cam.height),
+                             extractor=hloc_h5.EXTRACTOR_NAME if found[0] in ours else None)
+                    summary.copied[name] = "database -> hloc"
+                    continue
+            elif in_db:
+                replaced.append(found[0])
+            if found is not None:
+                camera = cameras[found[1]]
+            elif single_camera and shared is not None:
+                camera = shared
+                h, w = _image_size(path)
+                if (w, h) != (camera.camera.width, camera.camera.height):
+                    raise ImageError(f"{w}x{h} differs from the single camera's "
+                                     f"{camera.camera.width}x{camera.camera.height}")
+            else:
+                camera = _new_camera(path, camera_model, camera_params)
+                if not camera.prior:
+                    guessed.append(name)
+                if single_camera:
+                    shared = camera
+            if in_h5 and not overwrite:  # the database lacks it: the hloc file's features
+                feats = hloc_h5.read_features(h5.path, name)
+                size = tuple(int(v) for v in hloc_h5.read(h5.path, name)["image_size"])
+                if size != (camera.camera.width, camera.camera.height):
+                    raise ImageError(f"{h5.path} says the image is {size[0]}x{size[1]}, "
+                                     f"its camera is {camera.camera.width}x"
+                                     f"{camera.camera.height}")
+                _, camera.camera_id, _ = db.write_image(
+                    name, feats, camera.camera, camera.prior, camera.camera_id,
+                    extractor=None if name in foreign_h5 else hloc_h5.EXTRACTOR_NAME)
+                summary.copied[name] = "hloc -> database"
+                continue
+            todo[name] = camera
+        except Exception as e:
+            logger.debug("planning %s", name, exc_info=True)
+            summary.failed[name] = str(e) if isinstance(e, ImageError) else \
+                f"{type(e).__name__}: {e}"
+            logger.error("%s: %s", name, summary.failed[name])
+    if guessed:
+        logger.warning("%d image(s) have no focal length in EXIF (%s%s): guessing 1.2 x the "
+                       "larger side, as COLMAP does. Pass --camera_model/--camera_params "
+                       "for better planes.", len(guessed), ", ".join(guessed[:3]),
+                       ", ..." if len(guessed) > 3 else "")
+    for output, found, what in ((db, foreign_db, "database"),
+                                (h5, foreign_in_h5, "feature file")):
+        if found:
+            summary.foreign[str(output.path)] = len(found)
+            if not overwrite:
+                logger.warning("%s: %d image(s) have features from another extractor (%s%s); "
+                               "kept as they are (--overwrite replaces them)", output.path,
+                               len(found), ", ".join(found[:3]),
+                               ", ..." if len(found) > 3 else "")
+    if replaced:
+        n_matches, n_geoms = db.count_matches(replaced)
+        summary.deleted_matches = (n_matches, n_geoms)
+        if n_matches or n_geoms:
+            logger.warning("--overwrite: re-extracting %d image(s) of %s deletes %d match and "
+                           "%d two-view geometry rows that refer to their old keypoints",
+                           len(replaced), db.path, n_matches, n_geoms)
+    return todo
+
+
+class _Store:
+    """Writes one worker result into the outputs (main process)."""
+
+    def __init__(self, db, h5, cameras: dict[str, _Camera], summary: Summary,
+                 overwrite: bool, visualize: Path | None, image_dir: Path):
+        self.db, self.h5, self.cameras, self.summary = db, h5, cameras, summary
+        self.overwrite, self.visualize, self.image_dir = overwrite, visualize, image_dir
+
+    def __call__(self, out) -> None:
+        name, result, origin, error, warnings = out
+        summary = self.summary
+        for w in warnings:
+            summary.warn(name, w)
+        if error is not None:
+            summary.failed[name] = error
+            logger.error("%s: %s", name, error)
+            return
+        feats = result.features
+        cam = self.cameras[name]
+        try:
+            if self.db is not None:
+                _, cam.camera_id, _ = self.db.write_image(
+                    name, feats, cam.camera, cam.prior, cam.camera_id,
+                    overwrite=self.overwrite)
+            if self.h5 is not None:
+                self.h5.write(name, feats, (cam.camera.width, cam.camera.height),
+                              overwrite=self.overwrite)
+        except Exception as e:
+            logger.debug("writing %s", name, exc_info=True)
+            summary.failed[name] = f"writing features: {type(e).__name__}: {e}"
+            logger.error("%s: %s", name, summary.failed[name])
+            return
+        summary.done.append(name)
+        summary.num_keypoints += len(feats)
+        if not (feats.patch >= 0).any():
+            summary.plain.append(name)
+        if self.visualize is not None and result.planes is not None:
+            from .viz import save_visualizations
+
+            try:
+                save_visualizations(Path(self.visualize), name,
+                                    read_image(self.image_dir / name), cam.camera, result)
+            except Exception as e:  # a picture must never fail the extraction
+                logger.warning("%s: visualisation failed: %s", name, e)

@@ -108,8 +108,9 @@ def test_single_camera_and_workers(scene, tmp_path):
         assert con.execute("SELECT COUNT(*) FROM cameras").fetchone()[0] == 1
 
 
-def test_cli_rejects_params_without_model(scene, tmp_path):
+def test_cli_rejects_params_without_model(scene, tmp_path, caplog):
     images, _ = scene
-    with pytest.raises(SystemExit):
-        main(["extract", "--database", str(tmp_path / "x.db"), "--image_path", str(images),
-              "--camera_params", "1,2,3,4"])
+    assert main(["extract", "--database", str(tmp_path / "x.db"), "--image_path",
+                 str(images), "--camera_params", "1,2,3,4"]) == 2
+    assert "--camera_params needs --camera_model" in caplog.text
+    assert not (tmp_path / "x.db").exists()

@@ -32,13 +32,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+EXIT_ERROR = 2
+"""Exit code of a run that stopped on an error before or instead of doing its work (a run
+that went through but had failed images exits with 1)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level),
                         format="[%(asctime)s %(name)s %(levelname)s] %(message)s",
                         datefmt="%Y/%m/%d %H:%M:%S")
-    return int(args.func(args) or 0)
+    log = logging.getLogger("rectified_colmap")
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    except Exception as e:  # one line for the user; the traceback at DEBUG
+        log.debug("traceback", exc_info=True)
+        known = isinstance(e, (ValueError, OSError, KeyError, RuntimeError))
+        msg = str(e).strip("'\"") if isinstance(e, KeyError) else str(e)
+        log.error("%s%s%s", "" if known else f"{type(e).__name__}: ", msg,
+                  "" if args.log_level == "DEBUG" else
+                  ("" if known else " (--log_level DEBUG shows the traceback)"))
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":

@@ -42,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="all new images share one camera (COLMAP semantics)")
     p.add_argument("--max_num_features", "--SiftExtraction.max_num_features",
                    dest="max_num_features", type=int, default=None,
-                   help="feature budget per image, shared by patches and the rest (8192)")
+                   help="feature budget per image, shared by patches and the rest "
+                        "(default: the configuration's, 8192 in rectsift)")
     p.add_argument("--conf", default="rectsift",
                    help="named configuration (rectsift, rectsift-fast, sift) or a JSON file "
                         "of overrides, e.g. {\"rectify\": {\"max_viewing_angle_deg\": 85}}")
@@ -54,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "Default: as in --conf")
     p.add_argument("--num_workers", type=int, default=1, help="worker processes")
     p.add_argument("--overwrite", action="store_true",
-                   help="re-extract images that already have features")
+                   help="re-extract images that already have features, replacing them and "
+                        "deleting their matches (without it, outputs are only added to)")
     p.add_argument("--visualize", type=Path, help="write PNGs of planes and patches here")
     p.add_argument("--no_progress", action="store_true")
     p.set_defaults(func=run)
@@ -84,8 +86,6 @@ def run(args: argparse.Namespace) -> int:
 
     if args.database is None and args.hloc_features is None:
         raise SystemExit("give --database and/or --hloc_features")
-    if bool(args.camera_model) != bool(args.camera_params) and args.camera_params:
-        raise SystemExit("--camera_params needs --camera_model")
     conf = _load_conf(args.conf, args.max_num_features)
     if getattr(args, "orientation", None) is not None:
         conf.vp.enabled = args.orientation != "depth"
@@ -97,5 +97,5 @@ def run(args: argparse.Namespace) -> int:
         camera_model=args.camera_model, camera_params=args.camera_params,
         single_camera=bool(args.single_camera), conf=conf, num_workers=args.num_workers,
         overwrite=args.overwrite, visualize=args.visualize, progress=not args.no_progress)
-    logger.info("summary\n%s", summary.report())
+    (logger.info if summary.ok else logger.error)("summary\n%s", summary.report())
     return 0 if summary.ok else 1

@@ -23,6 +23,8 @@ import pycolmap
 
 DepthKind = Literal["metric", "depth", "disparity"]
 DEPTH_KINDS = ("metric", "depth", "disparity")
+MIN_VALID_FRACTION = 0.01
+"""A depth map with fewer valid (finite, positive) values than this is unusable."""
 
 
 @dataclass
@@ -45,6 +47,23 @@ class DepthMap:
         self.values = np.asarray(self.values, dtype=np.float32)
         if self.values.ndim != 2:
             raise ValueError(f"depth map must be 2-D, got shape {self.values.shape}")
+
+    def problem(self) -> str | None:
+        """Why this map cannot give geometry (all NaN, no positive depth, constant
+        disparity), or None when it is usable."""
+        v = self.values
+        finite = np.isfinite(v)
+        if not finite.any():
+            return "no finite values: all NaN or inf"
+        if self.kind == "disparity":
+            if np.ptp(v[finite]) == 0:
+                return "constant disparity: no geometry"
+            return None
+        valid = float((finite & (v > 0)).mean())
+        if valid < MIN_VALID_FRACTION:
+            return (f"{valid:.1%} of the values are positive depths: the rest are zero, "
+                    "negative or NaN")
+        return None
 
     def to_depth(self, shift: float = 0.0) -> np.ndarray:
         """z-depth (up to scale), NaN where invalid. For disparity, z = 1 / (p - shift)."""

@@ -71,7 +71,7 @@ def register_model(entry: ModelEntry, overwrite: bool = False) -> ModelEntry:
 
 
 register_model(ModelEntry(
-    name="rectsift-lite0", filename="rectsift-depth-lite0.onnx", licence="BSD-3-Clause",
+    name="rectsift-lite0", filename="rectsift-depth-lite0.onnx", licence="Apache-2.0",
     description="embedded default: EfficientNet-Lite0 U-Net trained by this project on "
                 "rendered street scenes (z-depth up to scale)",
     approx_mb=None))

@@ -12,6 +12,8 @@ numeric datasets only:
 - ``scales``      (N,) float32 COLMAP scale (Features.scales);
 - ``oris``        (N,) float32 orientation in DEGREES (hloc's DoG convention).
 Keypoints stay float32 even with ``as_half`` (float16 has 1 px steps above 1024).
+Groups written by this tool carry the attribute ``extractor = "rectified-colmap"`` (hloc
+reads datasets only), so groups from other extractors are recognised and kept.
 
 Crash safety. The target file is never open for writing. ``write()`` puts each image into
 its own small staging file (written as ``*.tmp``, fsynced, then ``os.replace``d to
@@ -20,7 +22,8 @@ directory, merges: the target is copied to ``<target>.merging``, the staged grou
 copied in with HDF5's object copy, the result is fsynced and atomically replaces the
 target, then the staging files are deleted. A kill -9 at any moment therefore leaves the
 target either as before or fully merged, and the staged work is merged on the next open.
-Only one writer per target at a time.
+One writer per target at a time: a writer holds ``<target>.lock`` (rectified_colmap.io.lock)
+from its creation to :meth:`HlocFeatureWriter.close`; a second process waits for it.
 """
 
 from __future__ import annotations
@@ -36,12 +39,17 @@ import h5py
 import numpy as np
 
 from .. import conventions
-from ..features import Features
+from ..features import Features, similarity_frames
+from .lock import OutputLock, check_writable
 
 logger = logging.getLogger(__name__)
 
 DATASETS = ("keypoints", "descriptors", "scores", "image_size", "scales", "oris")
 _GROUP = "features"  # name of the image's group inside a staging file
+EXTRACTOR_ATTR = "extractor"
+EXTRACTOR_NAME = "rectified-colmap"
+COLMAP_DESCRIPTOR_NORM = 512.0
+"""COLMAP stores unit RootSIFT as min(255, round(512 d)) bytes."""
 
 
 def staging_dir(path: Path) -> Path:
@@ -56,6 +64,22 @@ def rootsift_unit(descriptors: np.ndarray) -> np.ndarray:
     d = np.asarray(descriptors, dtype=np.float32)
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     return d / np.where(norm > 0, norm, 1.0)
+
+
+def rootsift_bytes(unit: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """(N, 128) unit-norm RootSIFT (e.g. read back from a feature file) -> (N, 128) uint8
+    bytes as COLMAP stores them; the inverse of :func:`rootsift_unit`.
+
+    The bytes' own norm (~512, not exactly: rounding) is not stored in the unit vector; it
+    is recovered as the fixed point n = ||round(n u)||, which returns the original bytes
+    exactly unless float16 storage moved a value across a rounding boundary (then by 1)."""
+    u = np.clip(np.asarray(unit, dtype=np.float64), 0.0, None)
+    norm = np.full((len(u), 1), COLMAP_DESCRIPTOR_NORM)
+    for _ in range(iterations):
+        b = np.clip(np.rint(u * norm), 0, 255)
+        new = np.linalg.norm(b, axis=1, keepdims=True)
+        norm = np.where(new > 0, new, COLMAP_DESCRIPTOR_NORM)
+    return np.clip(np.rint(u * norm), 0, 255).astype(np.uint8)
 
 
 def feature_arrays(features: Features, image_size: tuple[int, int], as_half: bool = True
@@ -93,13 +117,17 @@ def _check_name(name: str) -> str:
     return name
 
 
-def _group_names(f: h5py.File) -> set[str]:
-    """Image names in an open feature file: the parents of ``keypoints`` datasets."""
+def _group_names(f: h5py.File, foreign: set[str] | None = None) -> set[str]:
+    """Image names in an open feature file: the parents of ``keypoints`` datasets. Names
+    whose group lacks our extractor attribute are also added to ``foreign``."""
     names: set[str] = set()
 
     def visit(name, obj):
         if isinstance(obj, h5py.Dataset) and posixpath.basename(name) == "keypoints":
-            names.add(posixpath.dirname(name))
+            image = posixpath.dirname(name)
+            names.add(image)
+            if foreign is not None and obj.parent.attrs.get(EXTRACTOR_ATTR) != EXTRACTOR_NAME:
+                foreign.add(image)
 
     f.visititems(visit)
     return names
@@ -127,10 +155,13 @@ def _fsync_dir(path: Path) -> None:
         pass
 
 
-def _write_group(group: h5py.Group, arrays: dict[str, np.ndarray]) -> None:
+def _write_group(group: h5py.Group, arrays: dict[str, np.ndarray], extractor: str | None
+                 ) -> None:
     for key, value in arrays.items():
         group.create_dataset(key, data=value)
     group["keypoints"].attrs["uncertainty"] = 1.0
+    if extractor is not None:
+        group.attrs[EXTRACTOR_ATTR] = extractor
 
 
 def merge_staged(path: Path) -> int:
@@ -176,18 +207,29 @@ class HlocFeatureWriter:
 
     ``HlocFeatureWriter(path, as_half=True)``; use as a context manager or call
     :meth:`close` (which merges the staged images into ``path``). Images already in
-    ``path`` (or staged by a killed run) are kept and reported by :meth:`has`.
+    ``path`` (or staged by a killed run) are kept and reported by :meth:`has`; those that
+    another extractor wrote by :meth:`foreign`.
     """
 
-    def __init__(self, path: Path | str, as_half: bool = True):
+    def __init__(self, path: Path | str, as_half: bool = True, lock: bool = True):
         self.path = Path(path)
         self.as_half = as_half
+        self._closed = True
+        check_writable(self.path, "feature file")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        merge_staged(self.path)  # work left by a killed run
-        self._names: set[str] = set()
-        if self.path.exists():
-            with _open_read(self.path) as f:
-                self._names = _group_names(f)
+        self._lock = OutputLock(self.path) if lock else None
+        if self._lock is not None:
+            self._lock.acquire()
+        try:
+            merge_staged(self.path)  # work left by a killed run
+            self._names: set[str] = set()
+            self._foreign: set[str] = set()
+            if self.path.exists():
+                with _open_read(self.path) as f:
+                    self._names = _group_names(f, self._foreign)
+        except BaseException:
+            self._release()
+            raise
         self._stage = staging_dir(self.path)
         self._staged: set[str] = set()
         self._dirs = {"/".join(n.split("/")[:i]) for n in self._names
@@ -203,12 +245,17 @@ class HlocFeatureWriter:
     def has(self, name: str) -> bool:
         return name in self._names or name in self._staged
 
+    def foreign(self) -> set[str]:
+        """Names of the images in the file whose features another extractor wrote."""
+        return self._foreign - self._staged
+
     def names(self) -> list[str]:
         return sorted(self._names | self._staged)
 
     def write(self, name: str, features: Features, image_size: tuple[int, int],
-              overwrite: bool = False) -> None:
-        """Stage one image (``image_size`` = (W, H) of the original image)."""
+              overwrite: bool = False, extractor: str | None = EXTRACTOR_NAME) -> None:
+        """Stage one image (``image_size`` = (W, H) of the original image). ``extractor``:
+        recorded as the features' origin (None: not ours)."""
         if self._closed:
             raise RuntimeError(f"{self.path}: writer is closed")
         _check_name(name)
@@ -229,12 +276,16 @@ class HlocFeatureWriter:
         tmp = self._stage / f"{key}.tmp"
         with h5py.File(tmp, "w") as f:
             f.attrs["name"] = name
-            _write_group(f.create_group(_GROUP), arrays)
+            _write_group(f.create_group(_GROUP), arrays, extractor)
         _fsync_file(tmp)
         os.replace(tmp, final)
         _fsync_dir(self._stage)
         self._staged.add(name)
         self._dirs |= parents
+        if extractor is None:
+            self._foreign.add(name)
+        else:
+            self._foreign.discard(name)
 
     def flush(self) -> None:
         """Merge the staged images into the target now."""
@@ -244,8 +295,16 @@ class HlocFeatureWriter:
 
     def close(self) -> None:
         if not self._closed:
-            self.flush()
-            self._closed = True
+            try:
+                self.flush()
+            finally:
+                self._closed = True
+                self._release()
+
+    def _release(self) -> None:
+        if getattr(self, "_lock", None) is not None:
+            self._lock.release()
+            self._lock = None
 
 
 # -- readers -------------------------------------------------------------------------------
@@ -295,6 +354,28 @@ def read(path: Path | str, name: str) -> dict[str, np.ndarray]:
         out["uncertainty"] = float(g["keypoints"].attrs.get("uncertainty", 1.0))
     out["keypoints"] = conventions.from_hloc_keypoints(out["keypoints"])
     return out
+
+
+def read_features(path: Path | str, name: str) -> Features:
+    """One image's features from a feature file as Features (COLMAP convention, uint8
+    COLMAP-scale descriptors via :func:`rootsift_bytes`), whoever wrote them.
+
+    Frames are similarities from ``scales`` and ``oris`` (degrees) where the file has them
+    (an affine shape is not stored in hloc files), else unit scale. Raises ValueError when
+    the descriptors are not 128-dimensional SIFT."""
+    g = read(path, name)
+    kp = np.asarray(g["keypoints"], dtype=np.float64)
+    desc = np.asarray(g["descriptors"])
+    n = len(kp)
+    if desc.ndim != 2 or desc.shape != (128, n):
+        raise ValueError(f"{path}: {name!r}: descriptors {desc.shape} are not 128-dim SIFT "
+                         f"for {n} keypoints")
+    scales = np.asarray(g.get("scales", np.ones(n)), dtype=np.float64).reshape(-1)
+    oris = np.deg2rad(np.asarray(g.get("oris", np.zeros(n)), dtype=np.float64).reshape(-1))
+    if len(scales) != n or len(oris) != n:
+        raise ValueError(f"{path}: {name!r}: scales/oris do not match {n} keypoints")
+    return Features(kp, similarity_frames(scales, oris), rootsift_bytes(desc.T),
+                    np.full(n, -1, np.int32))
 
 
 def validate(path: Path | str, names: list[str] | None = None) -> int:
