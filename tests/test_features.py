@@ -3,8 +3,8 @@ import pycolmap
 import pytest
 
 from rectified_colmap.config import SiftConf
-from rectified_colmap.features import (Features, detect_sift, keypoints_in_mask,
-                                       similarity_frames, split_budget)
+from rectified_colmap.features import (Features, count_detections, detect_sift,
+                                       keypoints_in_mask, similarity_frames, split_budget)
 from tests.conftest import textured_image
 
 
@@ -76,3 +76,69 @@ def test_features_container():
     np.testing.assert_allclose(f.orientations, [0.3])
     g = Features.concatenate([f, Features.empty(), f])
     assert len(g) == 2 and g.patch.tolist() == [3, 3]
+
+
+def _sift_matrix(img, n, first_octave=-1, num_octaves=4):
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.num_threads = 1
+    opts.sift.max_num_features = n
+    opts.sift.first_octave = first_octave
+    opts.sift.num_octaves = num_octaves
+    kps, desc = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu) \
+        .extract_from_uint8_array(img)
+    return np.asarray(pycolmap.keypoints_to_matrix(kps), np.float64), np.asarray(desc.data)
+
+
+def test_colmap_budget_keeps_coarsest_levels_whole():
+    """The rule coarse_first relies on: a budget-n output is the tail (coarsest DoG levels)
+    of the unbounded output, and holds more than n points unless it is all of it."""
+    img = textured_image(300, 400, 5)
+    full, _ = _sift_matrix(img, 10**6)
+    assert count_detections(full) < len(full)  # some points have two orientations
+    for n in (50, 200, 800):
+        part, _ = _sift_matrix(img, n)
+        np.testing.assert_array_equal(part, full[len(full) - len(part):])
+        assert count_detections(part) > n
+        assert len(part) < len(full)
+
+
+def test_coarse_first_skips_the_first_octave_when_the_budget_allows():
+    img = textured_image(300, 400, 5)
+    coarse, coarse_desc = _sift_matrix(img, 10**6, 0, 3)
+    found = count_detections(coarse)
+    assert 100 < found < 2000
+    # budget filled by the coarser octaves: exactly one call on them
+    n = found // 3
+    f = detect_sift(img, SiftConf(), n, coarse_first=True)
+    ref, ref_desc = _sift_matrix(img, n, 0, 3)
+    np.testing.assert_allclose(f.keypoints, ref[:, :2])
+    np.testing.assert_array_equal(f.descriptors, ref_desc)
+    # budget beyond them: the first octave alone with what is left, finest first
+    n = found + 500
+    f = detect_sift(img, SiftConf(), n, coarse_first=True)
+    fine, fine_desc = _sift_matrix(img, n - found, -1, 1)
+    np.testing.assert_allclose(f.keypoints, np.concatenate([fine, coarse])[:, :2])
+    np.testing.assert_array_equal(f.descriptors, np.concatenate([fine_desc, coarse_desc]))
+
+
+def _agreement(a, b):
+    """Fraction of keypoints of Features a with one of b within 0.5 px and 5% in scale."""
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(b.keypoints).query(a.keypoints)
+    return float(np.mean((dist < 0.5) & (np.abs(np.log(a.scales / b.scales[idx])) < 0.05)))
+
+
+@pytest.mark.parametrize("n", [200, 1500])
+def test_coarse_first_finds_about_the_points_of_one_call(n):
+    img = textured_image(300, 400, 6)
+    ref = detect_sift(img, SiftConf(), n)
+    f = detect_sift(img, SiftConf(), n, coarse_first=True)
+    assert abs(len(f) - len(ref)) < 0.15 * len(ref)
+    assert _agreement(f, ref) > 0.8 and _agreement(ref, f) > 0.8
+
+
+def test_count_detections_counts_points_not_orientations():
+    m = np.array([[1, 2, 3, 0.1], [1, 2, 3, 0.5], [1, 2, 4, 0.1], [5, 2, 4, 0.1]], float)
+    assert count_detections(m) == 3
+    assert count_detections(np.zeros((0, 4))) == 0

@@ -1,0 +1,77 @@
+"""Memory of SIFT extraction: a bounded number of live pycolmap extractors, and resident
+memory that does not grow with the number of distinct feature budgets or images.
+
+Each pycolmap SIFT extractor keeps VLFeat's scale space of the last image it saw (~288
+bytes per pixel at first_octave = -1). Measured through /proc (Linux only)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rectified_colmap import features
+from rectified_colmap.config import SiftConf
+from rectified_colmap.features import detect_sift, live_extractors, release_extractors
+from tests.conftest import textured_image
+
+STATUS = Path("/proc/self/status")
+pytestmark = pytest.mark.skipif(not STATUS.exists(), reason="needs /proc (Linux)")
+
+
+def _status_mb(field: str) -> float:
+    for line in STATUS.read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024
+    raise KeyError(field)
+
+
+def _reset_peak() -> bool:
+    """Reset VmHWM (peak resident memory) of this process; False where not allowed."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True
+
+
+def test_live_extractors_stay_bounded():
+    img = textured_image(64, 96, 1)
+    for n in range(100, 1100, 100):  # ten distinct budgets
+        detect_sift(img, SiftConf(), n)
+        detect_sift(img, SiftConf(), n, first_octave=0)
+        detect_sift(img, SiftConf(), n, coarse_first=True)
+        assert 1 <= live_extractors() <= features.MAX_LIVE_EXTRACTORS
+    release_extractors()
+    assert live_extractors() == 0
+
+
+def test_a_repeated_budget_reuses_its_extractor():
+    img = textured_image(64, 96, 2)
+    detect_sift(img, SiftConf(), 300)
+    first = next(iter(features._EXTRACTORS.values()))
+    detect_sift(img, SiftConf(), 300)
+    assert next(iter(features._EXTRACTORS.values())) is first
+
+
+def test_memory_does_not_grow_with_budgets_and_images():
+    """16 extractions with distinct budgets on two image sizes: resident memory stays within
+    about one scale space of the larger image (a cache per budget held one per budget:
+    ~16 x 35 MB here)."""
+    h, w = 320, 400
+    scale_space_mb = 288 * h * w / 2**20  # ~35 MB
+    big, small = textured_image(h, w, 3), textured_image(h // 2, w // 2, 4)
+    release_extractors()
+    detect_sift(big, SiftConf(), 99)  # first use: code, allocator arenas
+    release_extractors()
+    before = _status_mb("VmRSS")
+    peak_ok = _reset_peak()
+    for i in range(8):
+        detect_sift(big, SiftConf(), 100 + 37 * i)
+        detect_sift(small, SiftConf(), 2000 + 37 * i, coarse_first=True)
+    grown = _status_mb("VmRSS") - before
+    assert grown < 1.5 * scale_space_mb, f"RSS grew by {grown:.0f} MB"
+    if peak_ok:
+        peak = _status_mb("VmHWM") - before
+        assert peak < 2.0 * scale_space_mb, f"peak {peak:.0f} MB above the start"
+    release_extractors()
+    assert _status_mb("VmRSS") - before < 0.5 * scale_space_mb
