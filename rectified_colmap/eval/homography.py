@@ -1,0 +1,293 @@
+"""Homography evaluation of features on planar image pairs (HPatches / EVD protocol).
+
+Per pair and method: ratio-test matching (rectified_colmap.eval.matching, mutual by
+default), a homography estimated with RANSAC (OpenCV, fixed iterations and confidence:
+deterministic), and its error against the ground-truth homography:
+
+- ``corner_err``: mean distance (pixels of image 1) between the four corners of image 0
+  mapped by the estimate and by the ground truth (HPatches' corner error);
+- ``visible_err``: mean distance over a grid of image-0 points whose ground-truth position
+  lands inside image 1 (in extreme views corners can map near the horizon, which makes the
+  corner error meaningless there); ``success`` = visible_err below ``success_px`` (10);
+- ``num_gt``: matches consistent with the ground truth (|H_gt x0 - x1| < ``gt_threshold``,
+  3 px): this does not depend on RANSAC;
+- ``num_inliers``: RANSAC inliers of the estimate.
+
+A failed estimation (fewer than 4 matches, no model, a point mapped behind the camera)
+gives errors of ``inf``.
+
+Pixel conventions: keypoints from FeatureSource are COLMAP pixels; ground-truth
+homographies are read in either convention (EVD and HPatches publish OpenCV's, 0-based
+centres) and converted once, through rectified_colmap.conventions, to a map between COLMAP
+pixel frames. All errors are in pixels of image 1.
+
+Pair files: a JSON list of objects with ``im0``, ``im1`` (feature names), ``H`` (3x3 row
+major, image 0 -> image 1), optional ``pair`` (a label), ``size0``/``size1`` ([W, H]; else
+read from the images with ``image_root``) and ``convention`` ("opencv", the default, or
+"colmap"): shared/data/evd-dev/pairs.json is one.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..conventions import from_opencv_points
+from .matching import FeatureSource, match_ratio
+
+logger = logging.getLogger(__name__)
+
+@dataclass
+class HomographyConf:
+    ratio: float = 0.8
+    mutual: bool = True
+    ransac_threshold: float = 3.0
+    """RANSAC reprojection threshold (pixels of image 1)."""
+    ransac_iters: int = 10000
+    ransac_confidence: float = 0.9999
+    gt_threshold: float = 3.0
+    """A match is GT-consistent when H_gt maps x0 within this of x1 (pixels)."""
+    success_px: float = 10.0
+    """A pair is solved when the error over the visible overlap is below this."""
+    grid_step: int = 10
+    """Spacing (pixels of image 0) of the grid behind ``visible_err``."""
+
+
+@dataclass
+class HomographyPair:
+    name: str
+    im0: str
+    im1: str
+    H: np.ndarray
+    """(3, 3) image 0 -> image 1 between COLMAP pixel frames."""
+    size0: tuple[int, int]
+    size1: tuple[int, int]
+    """(W, H) of each image."""
+
+
+def colmap_homography_from_opencv(H: np.ndarray) -> np.ndarray:
+    """A homography between OpenCV pixel frames (centre of the top-left pixel at 0) -> the
+    same map between COLMAP frames (centre at 0.5): T H T^-1, T the translation that
+    conventions.from_opencv_points applies (the inverse of conventions.to_opencv_homography).
+    """
+    T = np.eye(3)
+    T[:2, 2] = from_opencv_points(np.zeros(2))
+    return T @ np.asarray(H, np.float64) @ np.linalg.inv(T)
+
+
+def read_homography_pairs(path: Path | str, image_root: Path | str | None = None
+                          ) -> list[HomographyPair]:
+    """Pairs of a JSON pair file (see the module docstring)."""
+    path = Path(path)
+    items = json.loads(path.read_text())
+    if not isinstance(items, list):
+        raise ValueError(f"{path}: expected a JSON list of pairs")
+    out = []
+    for k, it in enumerate(items):
+        try:
+            H = np.asarray(it["H"], np.float64).reshape(3, 3)
+            im0, im1 = str(it["im0"]), str(it["im1"])
+        except (KeyError, ValueError) as e:
+            raise ValueError(f"{path}: pair {k}: needs im0, im1 and a 3x3 H ({e})") from None
+        conv = it.get("convention", "opencv")
+        if conv not in ("opencv", "colmap"):
+            raise ValueError(f"{path}: pair {k}: convention must be opencv or colmap")
+        if conv == "opencv":
+            H = colmap_homography_from_opencv(H)
+        H = positive_homography(H, it.get("size0"))
+        sizes = []
+        for key, im in (("size0", im0), ("size1", im1)):
+            if key in it:
+                sizes.append((int(it[key][0]), int(it[key][1])))
+            elif image_root is not None:
+                img = cv2.imread(str(Path(image_root) / im), cv2.IMREAD_UNCHANGED)
+                if img is None:
+                    raise ValueError(f"{path}: pair {k}: cannot read {im} under {image_root}")
+                sizes.append((img.shape[1], img.shape[0]))
+            else:
+                raise ValueError(f"{path}: pair {k}: no {key} and no image_root to read it")
+        out.append(HomographyPair(str(it.get("pair", f"{im0}--{im1}")), im0, im1, H,
+                                  sizes[0], sizes[1]))
+    return out
+
+
+def positive_homography(H: np.ndarray, size0=None) -> np.ndarray:
+    """H up to scale, with the sign that maps the centre of image 0 (W, H = ``size0``; else
+    the origin) to w > 0: a homography's scale includes its sign, and points map behind the
+    camera (w <= 0) only for the sign that says so."""
+    c = np.array([size0[0] / 2, size0[1] / 2, 1.0]) if size0 is not None else np.eye(3)[2]
+    return -H if (H @ c)[2] < 0 else H
+
+
+def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) points -> (N, 2) mapped points; NaN where the point maps to w <= 0 (behind)."""
+    p = np.asarray(xy, np.float64) @ H[:, :2].T + H[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = p[:, :2] / p[:, 2:]
+    out[p[:, 2] <= 1e-12] = np.nan
+    return out
+
+
+def corners(size: tuple[int, int]) -> np.ndarray:
+    """(4, 2) COLMAP coordinates of the image corners (outer pixel edges) for (W, H)."""
+    W, H = size
+    return np.array([[0.0, 0.0], [W, 0.0], [W, H], [0.0, H]])
+
+
+def visible_grid(pair: HomographyPair, step: int) -> np.ndarray:
+    """(M, 2) image-0 points on a grid (``step`` px) whose ground-truth position lies in
+    image 1 (in front of its camera)."""
+    W, H = pair.size0
+    xs = np.arange(step / 2, W, step)
+    ys = np.arange(step / 2, H, step)
+    g = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    m = apply_homography(pair.H, g)
+    W1, H1 = pair.size1
+    with np.errstate(invalid="ignore"):
+        ok = (m[:, 0] >= 0) & (m[:, 0] <= W1) & (m[:, 1] >= 0) & (m[:, 1] <= H1)
+    return g[ok]
+
+
+def homography_errors(H_est: np.ndarray | None, pair: HomographyPair, step: int = 10
+                      ) -> tuple[float, float]:
+    """(corner error, visible-overlap error): mean distances in pixels of image 1 between
+    the estimate's and the ground truth's images of the corners / the visible grid; inf
+    when there is no estimate or it maps a point behind the camera."""
+    if H_est is None:
+        return np.inf, np.inf
+    out = []
+    for pts in (corners(pair.size0), visible_grid(pair, step)):
+        if len(pts) == 0:
+            out.append(np.nan)
+            continue
+        d = np.linalg.norm(apply_homography(H_est, pts) - apply_homography(pair.H, pts), axis=1)
+        out.append(float(d.mean()) if np.isfinite(d).all() else np.inf)
+    return out[0], out[1]
+
+
+def estimate_homography(x0: np.ndarray, x1: np.ndarray, conf: HomographyConf
+                        ) -> tuple[np.ndarray | None, np.ndarray]:
+    """RANSAC homography between COLMAP pixel frames from (N, 2) matched points ->
+    (H or None, (N,) bool inliers). OpenCV's RANSAC is run in COLMAP coordinates directly:
+    a homography between the same frames, so no conversion is needed."""
+    if len(x0) < 4:
+        return None, np.zeros(len(x0), bool)
+    cv2.setRNGSeed(0)
+    H, inl = cv2.findHomography(x0.astype(np.float64), x1.astype(np.float64), cv2.RANSAC,
+                                conf.ransac_threshold, maxIters=conf.ransac_iters,
+                                confidence=conf.ransac_confidence)
+    if H is None or not np.isfinite(H).all():
+        return None, np.zeros(len(x0), bool)
+    return H, inl.ravel().astype(bool)
+
+
+def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf
+                  ) -> dict:
+    """One pair, one method: f0/f1 dicts with ``keypoints`` (N, 2) COLMAP px and
+    ``descriptors`` (N, D). Returns a record (plain dict)."""
+    m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
+    x0, x1 = f0["keypoints"][m[:, 0]], f1["keypoints"][m[:, 1]]
+    err = np.linalg.norm(apply_homography(pair.H, x0) - x1, axis=1) if len(m) else np.zeros(0)
+    H, inl = estimate_homography(x0, x1, conf)
+    ce, ve = homography_errors(H, pair, conf.grid_step)
+    return {"pair": pair.name, "num_kp0": len(f0["keypoints"]),
+            "num_kp1": len(f1["keypoints"]), "num_matches": int(len(m)),
+            "num_gt": int(np.sum(err < conf.gt_threshold)), "num_inliers": int(inl.sum()),
+            "corner_err": ce, "visible_err": ve, "success": bool(ve < conf.success_px)}
+
+
+def evaluate_homography_pairs(pairs: list[HomographyPair],
+                              methods: Mapping[str, Path | str | Mapping],
+                              conf: HomographyConf = HomographyConf(),
+                              both_directions: bool = True) -> list[dict]:
+    """Records for every pair (and, with ``both_directions``, its reverse: H^-1, image 1
+    matched to image 0; RANSAC and errors are not symmetric) and method."""
+    sources = {k: FeatureSource(v) for k, v in methods.items()}
+    records = []
+    for pair in pairs:
+        cases = [(pair, "0->1")]
+        if both_directions:
+            cases.append((HomographyPair(pair.name, pair.im1, pair.im0, np.linalg.inv(pair.H),
+                                         pair.size1, pair.size0), "1->0"))
+        for case, direction in cases:
+            for method, src in sources.items():
+                for im in (case.im0, case.im1):
+                    if im not in src:
+                        raise KeyError(f"{method}: no features for {im!r}")
+                rec = evaluate_pair(case, src[case.im0], src[case.im1], conf)
+                rec.update(method=method, direction=direction)
+                records.append(rec)
+    return records
+
+
+def _fmt(v: float) -> str:
+    return "fail" if not np.isfinite(v) else f"{v:.1f}"
+
+
+def homography_markdown(records: list[dict], conf: HomographyConf = HomographyConf()) -> str:
+    """Summary per method (cases solved, pairs solved in at least one direction, median
+    GT-consistent matches) and a per-case table."""
+    methods = list(dict.fromkeys(r["method"] for r in records))
+    lines = [f"| method | cases | solved (visible err < {conf.success_px:g} px) | pairs solved "
+             "(either direction) | median GT-consistent | median corner err (px) | "
+             "median visible err (px) |", "|---|---|---|---|---|---|---|"]
+    for m in methods:
+        rs = [r for r in records if r["method"] == m]
+        pairs = {r["pair"] for r in rs}
+        solved_pairs = {r["pair"] for r in rs if r["success"]}
+        lines.append(
+            f"| {m} | {len(rs)} | {sum(r['success'] for r in rs)} | "
+            f"{len(solved_pairs)} of {len(pairs)} | {np.median([r['num_gt'] for r in rs]):.0f} | "
+            f"{_fmt(np.median([r['corner_err'] for r in rs]))} | "
+            f"{_fmt(np.median([r['visible_err'] for r in rs]))} |")
+    lines += ["", "| pair | direction | " + " | ".join(
+        f"{m} GT-consistent / inliers / visible err" for m in methods) + " |",
+        "|---|---|" + "---|" * len(methods)]
+    keys = list(dict.fromkeys((r["pair"], r["direction"]) for r in records))
+    by = {(r["pair"], r["direction"], r["method"]): r for r in records}
+    for p, d in keys:
+        cells = []
+        for m in methods:
+            r = by.get((p, d, m))
+            cells.append("-" if r is None else
+                         f"{r['num_gt']} / {r['num_inliers']} / {_fmt(r['visible_err'])}"
+                         + (" **ok**" if r["success"] else ""))
+        lines.append(f"| {p} | {d} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plane_normals_from_homography(H: np.ndarray, K0: np.ndarray, K1: np.ndarray,
+                                  x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Oracle orientation of a planar pair: the plane normal in camera 0 and in camera 1
+    (unit, facing each camera: n . X < 0) from the ground-truth homography (COLMAP pixel
+    frames) and intrinsics K0, K1 (COLMAP convention), e.g. guessed ones.
+
+    K1^-1 H K0 = R + t n^T / d is decomposed (cv2.decomposeHomographyMat, up to 4
+    solutions); kept are those with every point of ``x0`` (image-0 pixels on the plane,
+    (N, 2)) in front of both cameras, and among them the one whose plane best reproduces
+    H (all exact solutions do; with guessed intrinsics none is exact). Returns (n0, n1)."""
+    Hn = np.linalg.inv(K1) @ H @ K0
+    Hn /= np.cbrt(np.linalg.det(Hn))  # scale of H is arbitrary (det > 0 kept)
+    _, Rs, ts, ns = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    m0 = np.c_[x0, np.ones(len(x0))] @ np.linalg.inv(K0).T  # rays of camera 0 (z = 1)
+    best, best_score = None, -np.inf
+    for R, t, n in zip(Rs, ts, ns):
+        n, t = n.ravel(), t.ravel()
+        # cv2: n^T X = d > 0 for plane points X of camera 0 (d = 1): in front when n.m > 0.
+        front0 = m0 @ n > 0
+        X0 = m0 / (m0 @ n)[:, None]  # plane points with d = 1
+        X1 = X0 @ R.T + t
+        front1 = X1[:, 2] > 0
+        score = np.mean(front0 & front1)
+        if score > best_score:
+            best, best_score = (n, R), score
+    n, R = best
+    n0 = -n / np.linalg.norm(n)  # ours: facing the camera
+    n1 = R @ n0
+    return n0, n1 / np.linalg.norm(n1)
