@@ -56,7 +56,11 @@ class RectifyConf:
     max_viewing_angle_deg: float = 80.0
     """Crop: drop pixels whose viewing ray makes more than this angle with the normal."""
     min_rectify_angle_deg: float = 0.0
-    """Patches seen closer than this to fronto-parallel are left to plain SIFT."""
+    """Patches whose median viewing angle (ray to normal, over the patch) is under this are
+    left to plain SIFT: seen near-frontally, the warp changes little (issue 9)."""
+    min_texture: float = 0.0
+    """Patches whose median Sobel gradient magnitude on the work grid is under this are left
+    to plain SIFT (sky, blank walls; Strecha facades ~40, cobblestones ~15)."""
     max_patch_side: int = 2048
     """Cap on the side of a rectified patch (pixels)."""
     max_patch_area_factor: float = 1.0

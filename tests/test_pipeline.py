@@ -125,3 +125,43 @@ def test_keep_plain_shares_the_budget_on_planes(texture):
     conf.rectify.keep_plain = False
     g = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
     assert (g.patch >= 0).sum() > rect and (g.patch < 0).sum() < plain
+
+
+def test_patch_evidence_viewing_angle_and_texture():
+    from rectified_colmap.pipeline import patch_evidence, patches_worth_rectifying
+    from rectified_colmap.planes import Patch
+
+    h, w = 36, 48  # work grid of the 480x360 camera (10 px cells)
+    mask = np.zeros((h, w), bool)
+    mask[17:19, 23:25] = True  # the 4 cells around the principal point (240, 180)
+    tilt = np.deg2rad(40.0)
+    n = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])  # faces the camera, 40 deg tilt
+    textured = textured_image(SIZE[1], SIZE[0], 3)
+    blank = np.full((SIZE[1], SIZE[0]), 128, np.uint8)
+    patches = [Patch(mask, 0, n, mask.mean()), Patch(mask, 1, np.array([0, 0, -1.0]),
+                                                     mask.mean())]
+    angle, tex = patch_evidence(textured, CAMERA, patches)
+    # Cells are 5 px (0.7 deg) from the axis: the angles are 40 and ~1 degrees.
+    assert abs(angle[0] - 40.0) < 1.0 and angle[1] < 1.5
+    assert tex[0] > 20
+    _, tex_blank = patch_evidence(blank, CAMERA, patches)
+    assert np.all(tex_blank == 0)
+    conf = ExtractConf().rectify
+    conf.min_rectify_angle_deg, conf.min_texture = 20.0, 5.0
+    assert patches_worth_rectifying(textured, CAMERA, patches, conf) == [0]
+    assert patches_worth_rectifying(blank, CAMERA, patches, conf) == []
+
+
+def test_frontal_plane_is_left_to_plain_sift_oblique_one_is_rectified(texture):
+    conf = ExtractConf()
+    conf.rectify.min_rectify_angle_deg = 30.0
+    R, t = look_at([0.3, -0.2, 4.0], [0, 0, 0], up=(0, 1, 0))  # ~5 deg: near-frontal
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
+    assert not res.rectifications
+    plain = detect_sift(img)
+    np.testing.assert_array_equal(res.features.keypoints, plain.keypoints)
+    R, t = look_at([0.5, -5, 3.5], [0, 0, 0])  # ~55 deg
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
+    assert len(res.rectifications) == 1 and (res.features.patch >= 0).sum() > 100
