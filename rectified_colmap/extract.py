@@ -48,7 +48,6 @@ from tqdm import tqdm
 
 from . import camera as cam_utils
 from .config import ExtractConf
-from .depth import DepthMap
 from .pipeline import ImageResult, extract_image
 
 logger = logging.getLogger(__name__)
@@ -455,8 +454,7 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
                        "larger side, as COLMAP does. Pass --camera_model/--camera_params "
                        "for better planes.", len(guessed), ", ".join(guessed[:3]),
                        ", ..." if len(guessed) > 3 else "")
-    for output, found, what in ((db, foreign_db, "database"),
-                                (h5, foreign_in_h5, "feature file")):
+    for output, found in ((db, foreign_db), (h5, foreign_in_h5)):
         if found:
             summary.foreign[str(output.path)] = len(found)
             if not overwrite:

@@ -394,3 +394,37 @@ def test_database_records_only_our_features(tmp_path):
     np.testing.assert_array_equal(back.descriptors, feats.descriptors)
     with sqlite3.connect(tmp_path / "d.db") as con:
         assert con.execute(f"SELECT COUNT(*) FROM {PROVENANCE_TABLE}").fetchone()[0] == 2
+
+
+def test_second_writer_waits_naming_the_holder(tmp_path, caplog):
+    """A process holding an output makes another wait, told which pid holds it; the lock
+    file is gone afterwards and a kill -9 of the holder releases it."""
+    from rectified_colmap.io.lock import OutputLock, lock_path
+
+    out = tmp_path / "db.db"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom rectified_colmap.io.lock import "
+         "OutputLock\nwith OutputLock(sys.argv[1]):\n    print('held', flush=True)\n"
+         "    time.sleep(float(sys.argv[2]))", str(out), "1.5"],
+        cwd=REPO, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    t0 = time.monotonic()
+    with OutputLock(out):
+        waited = time.monotonic() - t0
+        assert lock_path(out).read_text().strip() == str(os.getpid())
+    assert holder.wait(timeout=30) == 0
+    assert waited > 0.3
+    said = [r.getMessage() for r in caplog.records if "waiting" in r.getMessage()]
+    assert said == [f"{out} is being written by process {holder.pid}; waiting for it to "
+                    "finish"]
+    assert not lock_path(out).exists()
+    # kill -9 of a holder: the kernel releases the lock
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom rectified_colmap.io.lock import "
+         "OutputLock\nwith OutputLock(sys.argv[1]):\n    print('held', flush=True)\n"
+         "    time.sleep(60)", str(out)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    holder.kill()
+    holder.wait(timeout=30)
+    with OutputLock(out, poll_seconds=0.05):
+        pass
