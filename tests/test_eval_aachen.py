@@ -1,17 +1,33 @@
 """The hloc-free parts of the Aachen pipeline: query lists, pairs, the pycolmap 4.2
-two-view-geometry fix, result files, and the script's hloc checks."""
+two-view-geometry fix, result files, hloc checks (generation by signature, clear errors),
+camera databases, the mini Aachen, LightGlue orientations. Real hloc: test_hloc_integration."""
 
 import importlib.util
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
 import pytest
 
-from rectified_colmap.eval.aachen import (check_results, filter_pairs, group_by_camera,
-                                          read_query_list, set_two_view_config,
-                                          write_query_list)
+from rectified_colmap.eval.aachen import (
+    HlocError,
+    call_with,
+    check_results,
+    convert_oris_for_lightglue,
+    filter_pairs,
+    group_by_camera,
+    hloc_generation,
+    import_hloc,
+    localization_errors,
+    make_mini_aachen,
+    read_query_list,
+    recall,
+    set_two_view_config,
+    write_camera_database,
+    write_query_list,
+)
 from rectified_colmap.eval.localize import QueryResult, build_reference, write_poses
 from rectified_colmap.eval.pairs import read_pair_list, write_pair_list
 
@@ -130,8 +146,10 @@ def test_results_file(tmp_path):
 def test_script_hloc_checks(monkeypatch):
     mod = load_script()
     monkeypatch.setitem(sys.modules, "hloc", None)  # import hloc -> ImportError
-    with pytest.raises(SystemExit, match="not on PyPI"):
+    with pytest.raises(SystemExit, match="hloc is not installed.*not on PyPI"):
         mod.require_hloc()
+    with pytest.raises(HlocError, match="not installed"):
+        import_hloc()
 
     def new_style(image_ids, reference, database_path, max_error=4.0):
         return (image_ids, reference, database_path, max_error)
@@ -139,8 +157,135 @@ def test_script_hloc_checks(monkeypatch):
     def old_style(database_path, pairs_path, verbose=False):
         return (database_path, pairs_path)
 
-    avail = dict(image_ids=1, reference=2, database_path=3, pairs_path=4, features_path=5)
-    assert mod.call_with(new_style, **avail) == (1, 2, 3, 4.0)
-    assert mod.call_with(old_style, **avail) == (3, 4)
-    with pytest.raises(SystemExit, match="needs"):
-        mod.call_with(lambda other: 0, **avail)
+    avail = {"image_ids": 1, "reference": 2, "database_path": 3, "pairs_path": 4,
+             "features_path": 5}
+    assert call_with(new_style, **avail) == (1, 2, 3, 4.0)
+    assert call_with(old_style, **avail) == (3, 4)
+    with pytest.raises(HlocError, match="needs"):
+        call_with(lambda other: 0, **avail)
+
+
+def _fake_triangulation(import_features):
+    def f(*args, **kwargs):
+        return None
+
+    return SimpleNamespace(create_db_from_model=f, import_features=import_features,
+                           import_matches=f, geometric_verification=f, run_triangulation=f)
+
+
+def test_hloc_api_generation_by_signature():
+    """Both generations say version 1.5: the signature tells them apart."""
+    def new(image_ids, db, features_path):
+        pass
+
+    def old(image_ids, database_path, features_path):
+        pass
+
+    def other(image_ids, connection, features_path):
+        pass
+
+    assert hloc_generation(_fake_triangulation(new)) == "db"
+    assert hloc_generation(_fake_triangulation(old)) == "path"
+    with pytest.raises(HlocError, match="neither `db` nor `database_path`"):
+        hloc_generation(_fake_triangulation(other))
+    broken = _fake_triangulation(new)
+    del broken.geometric_verification
+    with pytest.raises(HlocError, match="no \\['geometric_verification'\\]"):
+        hloc_generation(broken)
+
+
+def test_hloc_missing_dependency_is_named(monkeypatch):
+    """hloc present but torch absent: the error names torch, not 'hloc is missing'."""
+    pytest.importorskip("hloc", reason="hloc not installed (docs/hloc.md)")
+    for name in [n for n in sys.modules if n == "hloc" or n.startswith("hloc.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "torch", None)
+    with pytest.raises(HlocError, match="cannot be imported.*'torch'"):
+        import_hloc()
+
+
+def test_camera_database_feeds_extract(tmp_path, texture):
+    """Database images get the given intrinsics (the reference model's), not a guess."""
+    import cv2
+
+    from rectified_colmap.extract import extract
+
+    (tmp_path / "img" / "db").mkdir(parents=True)
+    cams = {}
+    for k, f in enumerate((300.0, 410.0)):
+        name = f"db/{k}.png"
+        cv2.imwrite(str(tmp_path / "img" / name), texture(240, 320, seed=k))
+        cams[name] = pycolmap.Camera(model="PINHOLE", width=320, height=240,
+                                     params=[f, f + 1, 160, 120])
+    cams["db/2.png"] = cams["db/0.png"]
+    cv2.imwrite(str(tmp_path / "img" / "db/2.png"), texture(240, 320, seed=2))
+    assert write_camera_database(tmp_path / "c.db", cams) == 2
+    s = extract(tmp_path / "img", database=tmp_path / "c.db", hloc_features=tmp_path / "f.h5",
+                depth_model=None, progress=False)
+    assert sorted(s.done) == sorted(cams) and not s.failed
+    with pycolmap.Database.open(tmp_path / "c.db") as db:
+        got = {im.name: db.read_camera(im.camera_id) for im in db.read_all_images()}
+        assert all(db.num_keypoints_for_image(im.image_id) > 0 for im in db.read_all_images())
+    for name, cam in cams.items():
+        np.testing.assert_allclose(got[name].params, cam.params)
+
+
+def test_mini_aachen_layout_and_errors(tmp_path, texture):
+    """make_mini_aachen from a posed scene: layout, downscaled cameras, held-out queries,
+    ground truth; localization_errors/recall on a result file."""
+    import cv2
+
+    from rectified_colmap.eval.localize import format_pose
+
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    rec = pycolmap.Reconstruction()
+    for k in range(1, 8):
+        name = f"{k:04d}.jpg"
+        cv2.imwrite(str(scene / "images" / name), texture(400, 600, seed=k))
+        cam = pycolmap.Camera(model="PINHOLE", width=600, height=400,
+                              params=[500, 502, 300.5, 199.5], camera_id=k)
+        rec.add_camera_with_trivial_rig(cam)
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, camera_id=k, image_id=k),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([0.5 * k, 0, 0])))
+    (scene / "sparse").mkdir()
+    rec.write(str(scene / "sparse"))
+    p = make_mini_aachen(scene, tmp_path / "mini", max_size=300)
+    # sorted names, every third from the second: 0002, 0005 are queries
+    queries = read_query_list(p["queries"])
+    assert list(queries) == ["query/day/0002.jpg", "query/day/0005.jpg"]
+    q = queries["query/day/0002.jpg"]
+    assert (q.width, q.height) == (300, 200)
+    np.testing.assert_allclose(q.params, [250, 251, 150.25, 99.75])
+    ref = pycolmap.Reconstruction(str(p["reference_sfm"]))
+    assert sorted(im.name for im in ref.images.values()) == [
+        f"db/{k:04d}.jpg" for k in (1, 3, 4, 6, 7)]
+    assert cv2.imread(str(p["images"] / "db/0001.jpg")).shape[:2] == (200, 300)
+    assert len(read_pair_list(p["loc_pairs"])) == 2 * 5
+    gt = p["ground_truth"].read_text().splitlines()
+    assert [line.split()[0] for line in gt] == list(queries)
+    # a result file: one query 0.1 m off, the other missing
+    off = pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([1.0 + 0.1, 0, 0]))
+    (tmp_path / "r.txt").write_text(format_pose("0002.jpg", off) + "\n")
+    err = localization_errors(tmp_path / "r.txt", p["ground_truth"])
+    assert err["0002.jpg"] == pytest.approx((0.1, 0.0), abs=1e-6)
+    assert err["0005.jpg"] == (np.inf, np.inf)
+    assert recall(err) == [0.5, 0.5, 0.5]
+    assert recall(err, failed=["query/day/0002.jpg"]) == [0.0, 0.0, 0.0]
+
+
+def test_oris_for_lightglue(tmp_path):
+    import h5py
+
+    with h5py.File(tmp_path / "a.h5", "w") as f:
+        g = f.create_group("db/x.jpg")
+        g["keypoints"] = np.zeros((3, 2), np.float32)
+        g["oris"] = np.array([0, 90, -180], np.float32)
+        g["scales"] = np.ones(3, np.float32)
+    assert convert_oris_for_lightglue(tmp_path / "a.h5", tmp_path / "b.h5") == 1
+    with h5py.File(tmp_path / "b.h5") as f:
+        np.testing.assert_allclose(f["db/x.jpg/oris"][()], [0, np.pi / 2, -np.pi], atol=1e-6)
+        np.testing.assert_array_equal(f["db/x.jpg/scales"][()], 1)
+    with pytest.raises(ValueError, match="new file"):
+        convert_oris_for_lightglue(tmp_path / "a.h5", tmp_path / "a.h5")
