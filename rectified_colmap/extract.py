@@ -48,6 +48,7 @@ from tqdm import tqdm
 
 from . import camera as cam_utils
 from .config import ExtractConf
+from .features import Features
 from .pipeline import ImageResult, extract_image
 
 logger = logging.getLogger(__name__)
@@ -472,6 +473,15 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
     return todo
 
 
+def _stored_precision(feats: Features) -> Features:
+    """Keypoints and frames rounded to the float32 that a database stores, so that both
+    outputs, and copies between them, hold bit-identical values however they were made."""
+    def f32(a):
+        return np.asarray(a, dtype=np.float32).astype(np.float64)
+
+    return Features(f32(feats.keypoints), f32(feats.shapes), feats.descriptors, feats.patch)
+
+
 class _Store:
     """Writes one worker result into the outputs (main process)."""
 
@@ -489,7 +499,7 @@ class _Store:
             summary.failed[name] = error
             logger.error("%s: %s", name, error)
             return
-        feats = result.features
+        feats = _stored_precision(result.features)
         cam = self.cameras[name]
         try:
             if self.db is not None:

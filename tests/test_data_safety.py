@@ -428,3 +428,52 @@ def test_second_writer_waits_naming_the_holder(tmp_path, caplog):
     holder.wait(timeout=30)
     with OutputLock(out, poll_seconds=0.05):
         pass
+
+
+def _count_done(db: Path) -> int:
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)
+        try:
+            return con.execute("SELECT COUNT(*) FROM keypoints").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0
+
+
+@pytest.mark.slow
+def test_kill_9_mid_run_leaves_valid_files_and_resumes_to_a_clean_result(images, tmp_path):
+    root = tmp_path / "images"
+    root.mkdir()
+    names = [f"{k:02d}_{i}.png" for k in range(3) for i in range(5)]
+    for name in names:
+        shutil.copy(images / f"sub/{name[-5]}.png", root / name)
+    clean, killed = tmp_path / "clean", tmp_path / "killed"
+    cmd = [sys.executable, "-m", "rectified_colmap.cli", "extract", "--image_path",
+           str(root), "--depth_model", "none", "--no_progress", *CAM]
+
+    def out(folder):
+        return ["--database", str(folder / "db.db"), "--hloc_features", str(folder / "f.h5")]
+
+    assert subprocess.run(cmd + out(clean), cwd=REPO, capture_output=True).returncode == 0
+    for kill_after in (1, 5, 10):
+        proc = subprocess.Popen(cmd + out(killed), cwd=REPO, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        while proc.poll() is None and _count_done(killed / "db.db") < kill_after:
+            time.sleep(0.005)
+        proc.kill()
+        proc.wait()
+        state = db_state(killed / "db.db")  # valid, every image once, no orphan rows
+        assert set(state["features"]) <= set(names)
+        # the hloc file (merged on the next open) never holds an image twice or half
+        with hloc_h5.HlocFeatureWriter(killed / "f.h5") as w:
+            assert set(w.names()) <= set(names)
+        if (killed / "f.h5").exists():
+            hloc_h5.validate(killed / "f.h5")
+    assert subprocess.run(cmd + out(killed), cwd=REPO, capture_output=True).returncode == 0
+    assert db_state(killed / "db.db")["features"] == db_state(clean / "db.db")["features"]
+    for name in names:
+        a, b = hloc_h5.read(clean / "f.h5", name), hloc_h5.read(killed / "f.h5", name)
+        for key in hloc_h5.DATASETS:
+            np.testing.assert_array_equal(a[key], b[key])
+    no_leftovers(killed / "db.db", killed / "f.h5")
