@@ -1,23 +1,41 @@
 #!/usr/bin/env python
-"""Speed of rectified SIFT beside plain COLMAP SIFT and OpenCV's ASIFT, in the same run.
+"""Speed and memory of rectified SIFT beside plain COLMAP SIFT, in the same run.
 
-Prints, per image and on average, the time of each stage of rectified SIFT (depth network,
-normals, planes, homographies, plain SIFT on non-planar pixels, warps + SIFT in patches),
-the total, plain pycolmap SIFT on the same image, and cv2.AffineFeature(SIFT) (ASIFT, the
-view-synthesis anchor). Every method runs single-threaded in this process, one after the
-other on each image, so the ratios are comparable even on a noisy machine.
+For each image, in this one process, single-threaded, one method after the other:
 
-    python scripts/benchmark.py --image_path ../shared/data/strecha-dev/fountain-P11/images \
-        --camera_params 1382,1382,768,512 [--depth_path D | --depth_model rectsift-lite0]
-    python scripts/benchmark.py --synthetic 6          # rendered street scenes, GT depth
+- plain pycolmap SIFT with the full budget (``detect_sift``, exactly one COLMAP call). It
+  runs twice: ``plain_cold`` is the first call (a new extractor allocates its scale space),
+  ``plain_sift`` the second (the extractor's scale space reused, as COLMAP's extractor does
+  on a folder of same-size photos). Ratios divide by ``plain_sift``, the faster one.
+- rectified SIFT (``extract_image``, depth network included), with its stages.
+- optionally OpenCV's ASIFT (``cv2.AffineFeature`` over SIFT, the view-synthesis anchor).
+
+Before each method the SIFT extractors are released and the peak resident memory of the
+process (VmHWM) is reset, so ``plain_MB`` / ``rect_MB`` are the process's peak during that
+method (baseline of Python, pycolmap, onnxruntime and the network included); ``rss_MB`` is
+the resident memory after the image (flat over many images: no growth). Ratios are taken
+within the same run, so they hold on a noisy machine better than absolute seconds.
+
+Seconds are CPU seconds of this process (``--clock cpu``, the default: everything runs on
+one thread, so on a free core they equal wall seconds, and on a shared machine they do not
+count the time spent waiting for a core); ``rect_wall`` / ``plain_wall`` are wall seconds
+of the same runs. ``--clock wall`` measures every column in wall seconds.
+
+    python scripts/benchmark.py --image_path ../shared/data/strecha-dev/fountain-P11/images \\
+        --camera_params 1379.74,1382.08,760.095,503.155 --max_images 4 --no_asift
+    python scripts/benchmark.py ... --resize 6000x4000      # upscaled photos (memory)
+    python scripts/benchmark.py --synthetic 4 --no_asift    # rendered streets, GT depth
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
+import types
+from dataclasses import fields
 from pathlib import Path
 
 for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -27,11 +45,63 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rectified_colmap import camera as cam_utils  # noqa: E402
-from rectified_colmap.config import ExtractConf, confs  # noqa: E402
+from rectified_colmap import features, pipeline  # noqa: E402
+from rectified_colmap.config import ExtractConf, SiftConf, confs  # noqa: E402
 from rectified_colmap.depth import DepthMap  # noqa: E402
 from rectified_colmap.extract import list_images, read_image  # noqa: E402
-from rectified_colmap.features import detect_sift  # noqa: E402
+from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
 from rectified_colmap.pipeline import extract_image  # noqa: E402
+
+STAGES = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches",
+          "dedup"]
+COLUMNS = STAGES + ["other", "rect_total", "plain_cold", "plain_sift", "ratio", "asift",
+                    "rect_wall", "plain_wall", "kp_rect", "kp_plain", "patches", "rect_MB",
+                    "plain_MB", "rss_MB"]
+
+
+def memory_mb(field: str = "VmRSS") -> float:
+    """Resident (VmRSS) or peak resident (VmHWM) memory of this process in MiB (Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def reset_peak() -> None:
+    """Reset VmHWM to the current resident memory (Linux >= 4.0; ignored elsewhere)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def use_coarse_first(conf: ExtractConf) -> None:
+    """Rectified SIFT with ``coarse_first`` SIFT in its parts: plain SIFT on the image (the
+    fill pool) and the patches; the plain path of images without planes stays one exact
+    COLMAP call. Through ``SiftConf.coarse_first`` where the configuration has it, else by
+    switching the pipeline's detect_sift during its plain_features and rectified_features."""
+    if "coarse_first" in {f.name for f in fields(SiftConf)}:
+        conf.sift.coarse_first = True
+        return
+    coarse = functools.partial(detect_sift, coarse_first=True)
+
+    def wrap(part):
+        @functools.wraps(part)
+        def run(*args, **kwargs):
+            pipeline.detect_sift = coarse
+            try:
+                return part(*args, **kwargs)
+            finally:
+                pipeline.detect_sift = detect_sift
+        return run
+
+    pipeline.plain_features = wrap(pipeline.plain_features)
+    pipeline.rectified_features = wrap(pipeline.rectified_features)
 
 
 def synthetic_inputs(n: int, width: int, height: int, seed: int):
@@ -43,11 +113,11 @@ def synthetic_inputs(n: int, width: int, height: int, seed: int):
         camera = synth.pinhole_camera(width, height, 0.9 * width)
         pose = synth.random_view(scene, rng, camera)
         r = synth.render(scene, camera, pose)
-        yield f"synthetic_{i:03d}", r.image, camera, DepthMap(r.depth, "metric")
+        yield f"synthetic_{i:03d}", r.image, camera, DepthMap(r.depth, "metric"), (0.0, 0.0)
 
 
 def folder_inputs(args):
-    names = list_images(args.image_path, args.image_list)[: args.max_images]
+    names = list_images(args.image_path, args.image_list)[: args.max_images] * args.repeat
     files = network = None
     if args.depth_path:
         from rectified_colmap.depth.files import FileDepthSource
@@ -66,13 +136,30 @@ def folder_inputs(args):
                                            w, h)
         else:
             camera, _ = cam_utils.infer_camera(args.image_path / name)
-        depth, t_depth = None, 0.0
+        if args.resize:
+            W, H = (int(v) for v in args.resize.split("x"))
+            rgb = cv2.resize(rgb, (W, H), interpolation=cv2.INTER_CUBIC)
+            camera.rescale(W, H)
+        yield name, rgb, camera, files, network
+
+
+class Clock:
+    """The benchmark's clock: CPU seconds of this process or wall seconds."""
+
+    perf_counter = staticmethod(time.process_time)
+
+
+def with_depth(inputs):
+    """(name, rgb, camera, files, network) -> (name, rgb, camera, depth, (seconds, wall
+    seconds) of the network): depth inference is timed as a stage of rectified SIFT."""
+    for name, rgb, camera, files, network in inputs:
+        depth, t_depth = None, (0.0, 0.0)
         if files is not None:
             depth = files(rgb, camera, name)
         if depth is None and network is not None:
-            t0 = time.perf_counter()
+            w0, t0 = time.perf_counter(), Clock.perf_counter()
             depth = network(rgb, camera, name)
-            t_depth = time.perf_counter() - t0
+            t_depth = (Clock.perf_counter() - t0, time.perf_counter() - w0)
         yield name, rgb, camera, depth, t_depth
 
 
@@ -84,66 +171,104 @@ def main(argv=None) -> int:
     p.add_argument("--depth_path", type=Path)
     p.add_argument("--depth_model", default="rectsift-lite0")
     p.add_argument("--camera_model", default="PINHOLE")
-    p.add_argument("--camera_params")
+    p.add_argument("--camera_params", help="for the images' own size (rescaled with --resize)")
     p.add_argument("--max_images", type=int, default=5)
+    p.add_argument("--repeat", type=int, default=1,
+                   help="go over the images N times (resident memory over many images)")
+    p.add_argument("--resize", help="resize photos to WxH first (e.g. 6000x4000)")
     p.add_argument("--synthetic", type=int, default=0, help="render N street scenes instead")
     p.add_argument("--size", default="1536x1024", help="synthetic image size WxH")
     p.add_argument("--conf", default="rectsift", choices=sorted(confs))
+    p.add_argument("--coarse_first", action="store_true",
+                   help="coarse_first SIFT in the parts of rectified SIFT (see features.py)")
+    p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
     p.add_argument("--no_asift", action="store_true", help="skip the (slow) ASIFT anchor")
+    p.add_argument("--clock", choices=["cpu", "wall"], default="cpu",
+                   help="CPU seconds of this process (default) or wall seconds")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     cv2.setNumThreads(1)
+    if args.clock == "wall":
+        Clock.perf_counter = staticmethod(time.perf_counter)
+    # the pipeline's stage timings on the same clock
+    pipeline.time = types.SimpleNamespace(perf_counter=Clock.perf_counter)
     conf = ExtractConf.from_dict(confs[args.conf])
+    if args.coarse_first:
+        use_coarse_first(conf)
+    if args.patch_first_octave is not None:
+        conf.sift.patch_first_octave = args.patch_first_octave
 
     if args.synthetic:
         w, h = (int(v) for v in args.size.split("x"))
-        inputs = ((n, img, cam, d, 0.0) for n, img, cam, d in
-                  synthetic_inputs(args.synthetic, w, h, args.seed))
+        inputs = synthetic_inputs(args.synthetic, w, h, args.seed)
     elif args.image_path:
-        inputs = folder_inputs(args)
+        inputs = with_depth(folder_inputs(args))
     else:
         p.error("give --image_path or --synthetic N")
 
-    stages = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches"]
-    cols = stages + ["rect_geom", "rect_total", "plain_sift", "ratio", "asift", "kp_rect",
-                     "kp_plain", "patches"]
+    print(f"# clock: {args.clock}; load average at start: {os.getloadavg()[0]:.2f}; "
+          f"RSS {memory_mb():.0f} MB; "
+          f"coarse_first={args.coarse_first}; patch_first_octave={conf.sift.patch_first_octave}")
     rows = []
-    print("| image | WxH | " + " | ".join(cols) + " |")
-    print("|" + "---|" * (len(cols) + 2))
-    for name, rgb, camera, depth, t_depth in inputs:
+    print("| image | WxH | " + " | ".join(COLUMNS) + " |")
+    print("|" + "---|" * (len(COLUMNS) + 2))
+    for name, rgb, camera, depth, (t_depth, w_depth) in inputs:
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-        detect_sift(gray[:64, :64], conf.sift)  # warm the extractor cache
-        t0 = time.perf_counter()
+        clock = Clock.perf_counter
+        release_extractors()
+        reset_peak()
+        t0 = clock()
+        detect_sift(gray, conf.sift)
+        t_cold = clock() - t0
+        w0, t0 = time.perf_counter(), clock()
         plain = detect_sift(gray, conf.sift)
-        t_plain = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        t_plain, w_plain = clock() - t0, time.perf_counter() - w0
+        plain_mb = memory_mb("VmHWM")
+
+        release_extractors()
+        reset_peak()  # the depth network's peak was in the input generator: not counted
+        w0, t0 = time.perf_counter(), clock()
         res = extract_image(rgb, camera, depth, conf)
-        t_rect = time.perf_counter() - t0
-        t_asift, n_asift = float("nan"), 0
+        t_rect, w_rect = clock() - t0, time.perf_counter() - w0
+        rect_mb = memory_mb("VmHWM")
+
+        t_asift = float("nan")
         if not args.no_asift:
             asift = cv2.AffineFeature.create(cv2.SIFT.create(nfeatures=conf.sift.max_num_features))
-            t0 = time.perf_counter()
+            t0 = clock()
             kp = asift.detect(gray, None)
-            kp, _ = asift.compute(gray, kp)
-            t_asift, n_asift = time.perf_counter() - t0, len(kp)
+            asift.compute(gray, kp)
+            t_asift = clock() - t0
         tm = dict(res.timings, depth=t_depth)
-        row = {s: tm.get(s, 0.0) for s in stages}
-        row["rect_geom"] = sum(tm.get(s, 0.0) for s in ("normals", "planes", "homographies"))
+        row = {s: tm.get(s, 0.0) for s in STAGES}
+        row["other"] = t_rect - sum(row[s] for s in STAGES[1:])
         row["rect_total"] = t_rect + t_depth
+        row["plain_cold"] = t_cold
         row["plain_sift"] = t_plain
         row["ratio"] = (t_rect + t_depth) / t_plain
         row["asift"] = t_asift
+        row["rect_wall"] = w_rect + w_depth
+        row["plain_wall"] = w_plain
         row["kp_rect"] = len(res.features)
         row["kp_plain"] = len(plain)
         row["patches"] = len(res.rectifications)
+        row["rect_MB"] = rect_mb
+        row["plain_MB"] = plain_mb
+        row["rss_MB"] = memory_mb()
         rows.append(row)
-        fmt = [f"{row[c]:.3f}" if isinstance(row[c], float) else str(row[c]) for c in cols]
+        fmt = [f"{row[c]:.3f}" if isinstance(row[c], float) else str(row[c]) for c in COLUMNS]
+        fmt = [f"{row[c]:.0f}" if c.endswith("_MB") else v for c, v in zip(COLUMNS, fmt)]
         print(f"| {name} | {camera.width}x{camera.height} | " + " | ".join(fmt) + " |")
         sys.stdout.flush()
     if rows:
-        mean = {c: float(np.nanmean([r[c] for r in rows])) for c in cols}
-        fmt = [f"{mean[c]:.3f}" for c in cols]
-        print(f"| **mean** ({len(rows)}) | | " + " | ".join(fmt) + " |")
+        mean = {c: float(np.nanmean([r[c] for r in rows])) for c in COLUMNS}
+        mean["ratio"] = mean["rect_total"] / mean["plain_sift"]  # ratio of the means
+        for c in ("rect_MB", "plain_MB", "rss_MB"):
+            mean[c] = max(r[c] for r in rows)
+        fmt = [f"{mean[c]:.0f}" if c.endswith("_MB") else f"{mean[c]:.3f}" for c in COLUMNS]
+        print(f"| **mean** ({len(rows)}; MB: max) | | " + " | ".join(fmt) + " |")
+        print(f"# load average at end: {os.getloadavg()[0]:.2f}; "
+              f"live SIFT extractors: {features.live_extractors()}")
     return 0
 
 
