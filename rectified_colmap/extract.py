@@ -76,6 +76,8 @@ class Summary:
     """(match rows, two-view geometry rows) deleted by ``overwrite``."""
     num_keypoints: int = 0
     seconds: float = 0.0
+    work_seconds: float = 0.0
+    """Seconds spent extracting (after planning and copies): the throughput's base."""
 
     @property
     def ok(self) -> bool:
@@ -92,7 +94,9 @@ class Summary:
                  f"{len(self.failed)} failed",
                  f"keypoints: {self.num_keypoints} ({self.num_keypoints / max(n, 1):.0f} per "
                  f"image); {len(self.plain)} image(s) with plain SIFT only",
-                 f"time: {self.seconds:.1f} s ({self.seconds / max(n, 1):.2f} s per image)"]
+                 f"time: {self.seconds:.1f} s ({self.seconds / max(n, 1):.2f} s per image, "
+                 f"{n / self.work_seconds if self.work_seconds > 0 else 0:.2f} images/s "
+                 "while extracting)"]
         lines += [f"kept {k} image(s) with features from another extractor in {path}"
                   for path, k in self.foreign.items() if k]
         if any(self.deleted_matches):
@@ -308,8 +312,15 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
             camera_model: str | None = None, camera_params: list[float] | str | None = None,
             single_camera: bool = False, conf: ExtractConf | dict | None = None,
             num_workers: int = 1, overwrite: bool = False, visualize: Path | None = None,
-            progress: bool = True) -> Summary:
+            progress: bool = True, shard: str | tuple[int, int] | None = None,
+            ray_address: str | None = None) -> Summary:
     """Extract rectified SIFT for a folder of images; see the module docstring.
+
+    ``shard`` ("i/n" or (i, n)): only this job's share of the images
+    (rectified_colmap.distributed.shard_names); merge the shards' outputs with
+    rectified_colmap.io.merge. ``ray_address``: run the per-image work as Ray actors on
+    that cluster ("local": a local Ray instance); ``num_workers`` actors, or one per CPU
+    of the cluster when it is 1. Results are written here, by the caller's process.
 
     Raises (one-line message naming the file and the cause) before writing anything when
     an argument, an input folder, the depth model or an output cannot be used."""
@@ -321,6 +332,12 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
     _check_camera_args(camera_model, camera_params)
     image_dir = Path(image_dir)
     names = list_images(image_dir, image_list)
+    if shard is not None:
+        from .distributed import parse_shard, shard_names
+
+        index, count = parse_shard(shard)
+        names = shard_names(names, index, count)
+        logger.info("shard %d/%d: %d image(s)", index, count, len(names))
     summary = Summary()
     t_start = time.perf_counter()
     if depth_path is None and depth_model in (None, "none") and not conf.vp.depth_free:
@@ -334,9 +351,19 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
     for path, what in ((database, "database"), (hloc_features, "feature file")):
         if path is not None:
             check_writable(path, what)
-    init = (depth_path, depth_kind, png_scale, depth_model, 1 if num_workers > 1 else None)
+    parallel = num_workers > 1 or ray_address is not None
+    init = (None if depth_path is None else Path(depth_path).absolute(), depth_kind,
+            png_scale, depth_model, 1 if parallel else None)
     sources = _depth_sources(*init)  # fails here, before any output is touched
-    if num_workers > 1:
+    if ray_address is not None:
+        from .distributed import RayRunner
+
+        runner = RayRunner(ray_address, num_workers, init)  # fails here without Ray
+    elif num_workers > 1:
+        runner = _pool_runner(num_workers, init)
+    else:
+        runner = _here_runner(init, sources)
+    if parallel:
         sources = None  # each worker loads its own
 
     h5 = db = None
@@ -345,34 +372,51 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
         db = ColmapDatabase(database) if database is not None else None
         todo = _plan(names, image_dir, db, h5, camera_model, camera_params, single_camera,
                      overwrite, summary)
-
-        # Features, in worker processes when asked.
-        keep = visualize is not None
+        jobs = [(n, image_dir.absolute() / n, c.camera) for n, c in todo.items()]
         bar = tqdm(total=len(todo), desc="rectified SIFT", unit="img", disable=not progress)
         store = _Store(db, h5, todo, summary, overwrite, visualize, image_dir)
-        if num_workers > 1 and len(todo) > 1:
-            os.environ.setdefault("OMP_NUM_THREADS", "1")
-            with ProcessPoolExecutor(num_workers, initializer=_init_worker,
-                                     initargs=init) as ex:
-                futures = [ex.submit(_process, n, image_dir / n, c.camera, conf, keep)
-                           for n, c in todo.items()]
-                for fut in futures:
-                    store(fut.result())
-                    bar.update()
-        else:
-            _init_worker(*init, sources=sources)
-            for n, c in todo.items():
-                store(_process(n, image_dir / n, c.camera, conf, keep))
-                bar.update()
+        t_work = time.perf_counter()
+        for out in runner(jobs, conf, visualize is not None):  # in the order of ``jobs``
+            store(out)
+            bar.update()
         bar.close()
+        summary.work_seconds = time.perf_counter() - t_work
     finally:
         _WORKER.clear()
+        if hasattr(runner, "close"):
+            runner.close()
         if h5 is not None:
             h5.close()
         if db is not None:
             db.close()
     summary.seconds = time.perf_counter() - t_start
     return summary
+
+
+Job = tuple  # (name, absolute image path, pycolmap.Camera)
+
+
+def _here_runner(init: tuple, sources: dict):
+    """Runs the jobs in this process; yields _process results in job order."""
+    def run(jobs: list[Job], conf: ExtractConf, keep: bool):
+        _init_worker(*init, sources=sources)
+        for name, path, camera in jobs:
+            yield _process(name, path, camera, conf, keep)
+    return run
+
+
+def _pool_runner(num_workers: int, init: tuple):
+    """Runs the jobs in ``num_workers`` local processes; yields results in job order."""
+    def run(jobs: list[Job], conf: ExtractConf, keep: bool):
+        if len(jobs) <= 1:
+            yield from _here_runner(init, None)(jobs, conf, keep)
+            return
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        with ProcessPoolExecutor(num_workers, initializer=_init_worker, initargs=init) as ex:
+            futures = [ex.submit(_process, n, p, c, conf, keep) for n, p, c in jobs]
+            for fut in futures:
+                yield fut.result()
+    return run
 
 
 def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params,

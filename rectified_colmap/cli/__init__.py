@@ -11,7 +11,7 @@ import importlib
 import logging
 import sys
 
-SUBCOMMANDS = ["extract", "models", "evaluate", "localize", "demo"]
+SUBCOMMANDS = ["extract", "merge", "models", "evaluate", "localize", "demo"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -53,7 +53,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "vanishing points also for images without depth (vp: vp.enabled "
                         "and vp.depth_free; with --depth_model none: lines only). "
                         "Default: as in --conf")
-    p.add_argument("--num_workers", type=int, default=1, help="worker processes")
+    p.add_argument("--num_workers", type=int, default=1,
+                   help="worker processes (with --ray: Ray actors; default there: one per "
+                        "CPU of the cluster)")
+    p.add_argument("--shard", metavar="INDEX/COUNT",
+                   help="only this job's share of the images (INDEX from 0), e.g. a job "
+                        "array's task; combine the shards' outputs with `rectified-colmap "
+                        "merge`")
+    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="run the per-image work on a Ray cluster (ray.init address, e.g. "
+                        "'auto' or ray://host:10001); without ADDRESS a local Ray instance. "
+                        "Needs `pip install 'rectified-colmap[ray]'`")
     p.add_argument("--overwrite", action="store_true",
                    help="re-extract images that already have features, replacing them and "
                         "deleting their matches (without it, outputs are only added to)")
@@ -96,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         png_scale=args.depth_png_scale, depth_model=args.depth_model,
         camera_model=args.camera_model, camera_params=args.camera_params,
         single_camera=bool(args.single_camera), conf=conf, num_workers=args.num_workers,
-        overwrite=args.overwrite, visualize=args.visualize, progress=not args.no_progress)
+        overwrite=args.overwrite, visualize=args.visualize, progress=not args.no_progress,
+        shard=args.shard, ray_address=args.ray)
     (logger.info if summary.ok else logger.error)("summary\n%s", summary.report())
     return 0 if summary.ok else 1

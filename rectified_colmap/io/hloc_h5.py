@@ -256,6 +256,32 @@ class HlocFeatureWriter:
               overwrite: bool = False, extractor: str | None = EXTRACTOR_NAME) -> None:
         """Stage one image (``image_size`` = (W, H) of the original image). ``extractor``:
         recorded as the features' origin (None: not ours)."""
+        self._check_new(name, overwrite)
+        try:
+            arrays = feature_arrays(features, image_size, self.as_half)
+        except ValueError as e:
+            raise ValueError(f"{self.path}: {name!r}: {e}") from e
+        self._stage_group(name, lambda group: _write_group(group, arrays, extractor),
+                          extractor is not None)
+
+    def copy_from(self, source: Path | str, name: str, overwrite: bool = False) -> None:
+        """Stage one image's group exactly as it is in another feature file (datasets and
+        attributes, bit for bit): merging shards."""
+        self._check_new(name, overwrite)
+        with _open_read(Path(source)) as src:
+            if name not in src or "keypoints" not in src[name]:
+                raise KeyError(f"{source}: no features for {name!r}")
+            ours = src[name].attrs.get(EXTRACTOR_ATTR) == EXTRACTOR_NAME
+
+            def fill(group):
+                for key, value in src[name].attrs.items():
+                    group.attrs[key] = value
+                for key in src[name]:
+                    src.copy(src[name][key], group, name=key)
+
+            self._stage_group(name, fill, ours)
+
+    def _check_new(self, name: str, overwrite: bool) -> None:
         if self._closed:
             raise RuntimeError(f"{self.path}: writer is closed")
         _check_name(name)
@@ -266,26 +292,25 @@ class HlocFeatureWriter:
         if self.has(name) and not overwrite:
             raise ValueError(f"{self.path}: {name!r} already has features "
                              "(pass overwrite=True to replace them)")
-        try:
-            arrays = feature_arrays(features, image_size, self.as_half)
-        except ValueError as e:
-            raise ValueError(f"{self.path}: {name!r}: {e}") from e
+
+    def _stage_group(self, name: str, fill, ours: bool) -> None:
+        """Write ``fill(group)`` into the image's staging file, atomically."""
         self._stage.mkdir(exist_ok=True)
         key = hashlib.sha1(name.encode()).hexdigest()
         final = self._stage / f"{key}.h5"
         tmp = self._stage / f"{key}.tmp"
         with h5py.File(tmp, "w") as f:
             f.attrs["name"] = name
-            _write_group(f.create_group(_GROUP), arrays, extractor)
+            fill(f.create_group(_GROUP))
         _fsync_file(tmp)
         os.replace(tmp, final)
         _fsync_dir(self._stage)
         self._staged.add(name)
-        self._dirs |= parents
-        if extractor is None:
-            self._foreign.add(name)
-        else:
+        self._dirs |= {"/".join(name.split("/")[:i]) for i in range(1, name.count("/") + 1)}
+        if ours:
             self._foreign.discard(name)
+        else:
+            self._foreign.add(name)
 
     def flush(self) -> None:
         """Merge the staged images into the target now."""
