@@ -75,3 +75,44 @@ def test_memory_does_not_grow_with_budgets_and_images():
         assert peak < 2.0 * scale_space_mb, f"peak {peak:.0f} MB above the start"
     release_extractors()
     assert _status_mb("VmRSS") - before < 0.5 * scale_space_mb
+
+
+def test_retained_memory_is_reused(tmp_path):
+    """With retain_freed_memory (glibc), new extractors and new image sizes reuse freed pages:
+    no page faults after the first image, and resident memory does not grow. In a child
+    process: the setting is process-wide."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "child.py"
+    script.write_text(
+        "import resource, sys\n"
+        "import numpy as np\n"
+        "from rectified_colmap.config import SiftConf\n"
+        "from rectified_colmap.features import detect_sift, retain_freed_memory\n"
+        "from tests.conftest import textured_image\n"
+        "if not retain_freed_memory():\n"
+        "    print('unsupported'); sys.exit(0)\n"
+        "img = textured_image(320, 400, 7)\n"
+        "detect_sift(img, SiftConf(), 100)\n"
+        "detect_sift(img[:200, :300].copy(), SiftConf(), 101)\n"
+        "def rss():\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith('VmRSS'):\n"
+        "            return int(line.split()[1]) / 1024\n"
+        "before, f0 = rss(), resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "for i in range(4):\n"
+        "    detect_sift(img, SiftConf(), 200 + i)\n"
+        "    detect_sift(np.ascontiguousarray(img[:150 + 20 * i, :250]), SiftConf(), 300 + i)\n"
+        "faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0\n"
+        "print(faults, rss() - before)\n")
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(script)], cwd=root, capture_output=True,
+                         text=True, check=True, env={**__import__("os").environ,
+                                                     "PYTHONPATH": str(root)}).stdout.split()
+    if out == ["unsupported"]:
+        pytest.skip("not glibc")
+    faults, grown = int(out[0]), float(out[1])
+    scale_space_pages = 288 * 320 * 400 / 4096  # ~9000 pages per new extractor without it
+    assert faults < 0.5 * scale_space_pages, faults  # 8 new extractors, none faulted in
+    assert grown < 5, grown
