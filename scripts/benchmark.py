@@ -181,6 +181,8 @@ def main(argv=None) -> int:
     p.add_argument("--conf", default="rectsift", choices=sorted(confs))
     p.add_argument("--coarse_first", action="store_true",
                    help="coarse_first SIFT in the parts of rectified SIFT (see features.py)")
+    p.add_argument("--retain_memory", action="store_true",
+                   help="features.retain_freed_memory() first (both methods)")
     p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
     p.add_argument("--no_asift", action="store_true", help="skip the (slow) ASIFT anchor")
     p.add_argument("--clock", choices=["cpu", "wall"], default="cpu",
@@ -188,6 +190,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     cv2.setNumThreads(1)
+    if args.retain_memory:
+        features.retain_freed_memory()
     if args.clock == "wall":
         Clock.perf_counter = staticmethod(time.perf_counter)
     # the pipeline's stage timings on the same clock
@@ -208,7 +212,8 @@ def main(argv=None) -> int:
 
     print(f"# clock: {args.clock}; load average at start: {os.getloadavg()[0]:.2f}; "
           f"RSS {memory_mb():.0f} MB; "
-          f"coarse_first={args.coarse_first}; patch_first_octave={conf.sift.patch_first_octave}")
+          f"coarse_first={args.coarse_first}; retain_memory={args.retain_memory}; "
+          f"patch_first_octave={conf.sift.patch_first_octave}")
     rows = []
     print("| image | WxH | " + " | ".join(COLUMNS) + " |")
     print("|" + "---|" * (len(COLUMNS) + 2))
