@@ -12,7 +12,8 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
    - ``oracle``: the pipeline with the plane orientation taken from the ground-truth
      homography, decomposed with the guessed intrinsics (one plane over the whole image,
      normal n0 in image 0 and R n0 in image 1): the upper bound of rectification itself;
-   - extra rectsift variants with ``--variant NAME=JSON`` (conf overrides);
+   - extra variants with ``--variant NAME=JSON`` (conf overrides; ``"_base": "oracle"``
+     in the JSON makes it a variant of ``oracle``, else of ``rectsift``);
 2. homography evaluation in both directions of every pair (rectified_colmap.eval.homography)
    -> records.csv, summary.md.
 
@@ -72,13 +73,15 @@ def extract_method(method: str, names: list[str], root: Path, cameras, normals, 
         return h5
     h5.parent.mkdir(parents=True, exist_ok=True)
     overrides = json.loads(args.rect_conf) if args.rect_conf else {}
-    for section, values in args.variants.get(method, {}).items():
+    variant = dict(args.variants.get(method, {}))
+    base = variant.pop("_base", "rectsift")  # a variant of rectsift (network) or of oracle
+    for section, values in variant.items():
         overrides[section] = {**overrides.get(section, {}), **values}
     conf = ExtractConf.from_dict(overrides)
     if args.max_num_features:
         conf.sift.max_num_features = args.max_num_features
     source = None
-    if method == "rectsift" or method in args.variants:
+    if method == "rectsift" or (method in args.variants and base == "rectsift"):
         from rectified_colmap.depth.registry import load_depth_source
         from rectified_colmap.extract import DEFAULT_DEPTH_MODEL
 
@@ -92,7 +95,7 @@ def extract_method(method: str, names: list[str], root: Path, cameras, normals, 
             depth, nmap = None, None
             if source is not None:
                 depth = source(rgb, cam, name)
-            elif method == "oracle":
+            elif method == "oracle" or base == "oracle":
                 w, h = work_size(cam.width, cam.height, conf.normals.work_max_size)
                 nmap = np.broadcast_to(normals[name], (h, w, 3)).copy()
             res = extract_image(rgb, cam, depth, conf, np.random.default_rng(0), normals=nmap)

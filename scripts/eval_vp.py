@@ -48,6 +48,7 @@ method each, renamed) into one table by rotation bin (the real-photo part of doc
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -204,9 +205,9 @@ def make_pairs(num: int, min_deg: float, max_deg: float, width: int, height: int
     return pairs
 
 
-def confs(max_num_features: int, rows: dict[str, tuple[str, bool]] | None = None
-          ) -> dict[str, ExtractConf]:
-    base = ExtractConf()
+def confs(max_num_features: int, rows: dict[str, tuple[str, bool]] | None = None,
+          overrides: dict | None = None) -> dict[str, ExtractConf]:
+    base = ExtractConf.from_dict(overrides)
     base.sift.max_num_features = max_num_features
     vp = ExtractConf.from_dict(base.to_dict())
     vp.vp.enabled = True
@@ -234,8 +235,9 @@ def run(args) -> str:
     pairs = make_pairs(args.num_pairs, args.min_deg, args.max_deg, args.width, args.height)
     rows = network_rows(args.depth_model, args.depth_model_vp)
     networks = load_networks(rows)
-    methods = METHODS + tuple(rows)
-    cfs = confs(args.max_num_features, rows)
+    methods = tuple(m for m in METHODS if m in args.methods) + tuple(rows)
+    cfs = confs(args.max_num_features, rows,
+                json.loads(args.rect_conf) if args.rect_conf else None)
     eval_conf = EvalConf()
     records, dir_err, patch_err, coverage, nrect, secs = [], {}, {}, {}, {}, {}
     for m in methods:
@@ -448,6 +450,11 @@ def main(argv=None) -> int:
                         "name, e.g. rectsift-lite0, or .onnx path; CPU, one thread)")
     p.add_argument("--depth_model_vp", action="store_true",
                    help="with --depth_model: also each network with vp.enabled (+ VP)")
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,
+                   help="rows to run besides the --depth_model rows (default: all)")
+    p.add_argument("--rect_conf", default=None,
+                   help='JSON conf overrides for every rectified row, e.g. '
+                        '\'{"dedup": {"enabled": false}}\'')
     p.add_argument("--output", type=Path, help="also write the Markdown table here")
     p.add_argument("--combine", nargs="+", metavar="LABEL=records.csv:method",
                    help="only merge eval_strecha records into one table (see above)")
