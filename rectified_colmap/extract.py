@@ -49,11 +49,12 @@ from tqdm import tqdm
 from . import camera as cam_utils
 from .config import ExtractConf
 from .features import Features
+from .io.images import (IMAGE_EXTENSIONS, ImageError, decode_image, image_size,  # noqa: F401
+                        list_images, read_image)
 from .pipeline import ImageResult, extract_image
 
 logger = logging.getLogger(__name__)
 
-IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp"}
 DEFAULT_DEPTH_MODEL = "rectsift-lite0"
 
 
@@ -105,77 +106,6 @@ class Summary:
         lines += [f"WARNING {name}: {w}" for name, ws in self.warnings.items() for w in ws]
         lines += [f"FAILED {name}: {why}" for name, why in self.failed.items()]
         return "\n".join(lines)
-
-
-class ImageError(ValueError):
-    """A problem with one image (its cause only; the caller adds the image's name)."""
-
-
-def list_images(image_dir: Path, image_list: Path | list[str] | None = None) -> list[str]:
-    """Names (relative, '/'-separated) of the images to process, sorted like COLMAP.
-
-    A name listed twice is processed once."""
-    image_dir = Path(image_dir)
-    if not image_dir.is_dir():
-        raise FileNotFoundError(f"{image_dir}: image path is not a folder")
-    if image_list is not None:
-        if isinstance(image_list, (str, Path)):
-            try:
-                text = Path(image_list).read_text().splitlines()
-            except (OSError, UnicodeDecodeError) as e:
-                raise FileNotFoundError(f"{image_list}: cannot read the image list "
-                                        f"({type(e).__name__}: {e})") from None
-            names = [ln.strip() for ln in text if ln.strip() and not ln.startswith("#")]
-        else:
-            names = list(image_list)
-        unique = list(dict.fromkeys(names))
-        if len(unique) < len(names):
-            logger.warning("%s: %d duplicate name(s) in the image list, each processed once",
-                           image_list if isinstance(image_list, (str, Path)) else "image list",
-                           len(names) - len(unique))
-        return unique
-    names = [p.relative_to(image_dir).as_posix() for p in image_dir.rglob("*")
-             if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()]
-    return sorted(names)
-
-
-def decode_image(path: Path) -> tuple[np.ndarray, list[str]]:
-    """-> (RGB uint8 (H, W, 3), warnings). EXIF orientation ignored (as COLMAP reads pixels).
-
-    Raises ImageError (cause only) when the file is missing or cannot be decoded. A JPEG
-    without its end-of-image marker (truncated: the decoder fills the rest with grey) is
-    decoded with a warning."""
-    path = Path(path)
-    if not path.is_file():
-        raise ImageError("no such image file")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-    if img is None:
-        raise ImageError("cannot decode image (corrupt or unsupported format)")
-    warnings = []
-    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
-        warnings.append("truncated JPEG (no end-of-image marker): the missing part decodes "
-                        "as grey")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), warnings
-
-
-def _jpeg_complete(path: Path) -> bool:
-    """Whether a JPEG file ends with its EOI marker (FF D9), trailing padding allowed."""
-    with open(path, "rb") as f:
-        f.seek(0, os.SEEK_END)
-        f.seek(max(0, f.tell() - 4096))
-        tail = f.read().rstrip(b"\0\r\n ")
-    return tail.endswith(b"\xff\xd9")
-
-
-def read_image(path: Path) -> np.ndarray:
-    """RGB uint8 (H, W, 3), EXIF orientation ignored (as COLMAP reads pixels). Raises
-    FileNotFoundError / ValueError naming the file."""
-    try:
-        return decode_image(path)[0]
-    except ImageError as e:
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"{path}: {e}") from None
-        raise ValueError(f"{path}: {e}") from None
 
 
 # ---------------------------------------------------------------------------------------
@@ -284,12 +214,8 @@ def _new_camera(path: Path, model: str | None, params: list[float] | None) -> _C
 
 def _image_size(path: Path) -> tuple[int, int]:
     """(H, W) of an image file."""
-    if not path.is_file():
-        raise ImageError("no such image file")
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
-    if img is None:
-        raise ImageError("cannot decode image (corrupt or unsupported format)")
-    return img.shape[:2]
+    w, h = image_size(path)
+    return h, w
 
 
 def _check_camera_args(camera_model: str | None, camera_params) -> None:
