@@ -69,7 +69,7 @@ def read_query_list(path: Path | str) -> dict[str, pycolmap.Camera]:
         try:
             cam = pycolmap.Camera(model=model, width=int(w), height=int(h),
                                   params=[float(p) for p in params])
-        except Exception as e:
+        except (RuntimeError, TypeError, ValueError) as e:
             raise ValueError(f"{path}:{i}: invalid camera ({e})") from None
         if not cam.verify_params():
             raise ValueError(f"{path}:{i}: {len(params)} params do not fit model {model}")
