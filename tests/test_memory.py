@@ -81,6 +81,7 @@ def test_retained_memory_is_reused(tmp_path):
     """With retain_freed_memory (glibc), new extractors and new image sizes reuse freed pages:
     no page faults after the first image, and resident memory does not grow. In a child
     process: the setting is process-wide."""
+    import os
     import subprocess
     import sys
 
@@ -107,9 +108,9 @@ def test_retained_memory_is_reused(tmp_path):
         "faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0\n"
         "print(faults, rss() - before)\n")
     root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
     out = subprocess.run([sys.executable, str(script)], cwd=root, capture_output=True,
-                         text=True, check=True, env={**__import__("os").environ,
-                                                     "PYTHONPATH": str(root)}).stdout.split()
+                         text=True, check=True, env=env).stdout.split()
     if out == ["unsupported"]:
         pytest.skip("not glibc")
     faults, grown = int(out[0]), float(out[1])
