@@ -181,6 +181,9 @@ def main(argv=None) -> int:
     p.add_argument("--conf", default="rectsift", choices=sorted(confs))
     p.add_argument("--coarse_first", action="store_true",
                    help="coarse_first SIFT in the parts of rectified SIFT (see features.py)")
+    p.add_argument("--exact_sift", action="store_true",
+                   help="exact COLMAP calls in every part (where the configuration has "
+                        "sift.coarse_first)")
     p.add_argument("--retain_memory", action="store_true",
                    help="features.retain_freed_memory() first (both methods)")
     p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
@@ -197,8 +200,12 @@ def main(argv=None) -> int:
     # the pipeline's stage timings on the same clock
     pipeline.time = types.SimpleNamespace(perf_counter=Clock.perf_counter)
     conf = ExtractConf.from_dict(confs[args.conf])
+    if args.coarse_first and args.exact_sift:
+        p.error("--coarse_first or --exact_sift, not both")
     if args.coarse_first:
         use_coarse_first(conf)
+    elif args.exact_sift and hasattr(conf.sift, "coarse_first"):
+        conf.sift.coarse_first = False
     if args.patch_first_octave is not None:
         conf.sift.patch_first_octave = args.patch_first_octave
 
@@ -212,7 +219,8 @@ def main(argv=None) -> int:
 
     print(f"# clock: {args.clock}; load average at start: {os.getloadavg()[0]:.2f}; "
           f"RSS {memory_mb():.0f} MB; "
-          f"coarse_first={args.coarse_first}; retain_memory={args.retain_memory}; "
+          f"coarse_first={getattr(conf.sift, 'coarse_first', args.coarse_first)}; "
+          f"retain_memory={args.retain_memory}; "
           f"patch_first_octave={conf.sift.patch_first_octave}")
     rows = []
     print("| image | WxH | " + " | ".join(COLUMNS) + " |")
