@@ -26,12 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="folder of depth maps: sub/0001.jpg -> sub/0001.jpg.npy, sub/0001.npy, "
                         ".npz, 16-bit .png, COLMAP .geometric.bin/.photometric.bin")
     p.add_argument("--depth_kind", default="depth", choices=["depth", "metric", "disparity"],
-                   help="what the depth files hold (default: z-depth up to scale)")
+                   help="what the depth files hold (default %(default)s: z-depth up to scale)")
     p.add_argument("--depth_png_scale", type=float, default=0.001,
-                   help="16-bit PNG depth = value x scale (default 0.001: millimetres)")
+                   help="16-bit PNG depth = value x scale (default %(default)s: millimetres)")
     p.add_argument("--depth_model", default="rectsift-lite0",
                    help="depth network for images without a depth file: a registry name "
-                        "(`rectified-colmap models list`), a path to an .onnx, or 'none'")
+                        "(`rectified-colmap models list`), a path to an .onnx, or 'none' "
+                        "(default %(default)s)")
     p.add_argument("--camera_model", "--ImageReader.camera_model", dest="camera_model",
                    help="COLMAP camera model for new cameras (default: SIMPLE_RADIAL from EXIF)")
     p.add_argument("--camera_params", "--ImageReader.camera_params", dest="camera_params",
