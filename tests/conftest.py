@@ -1,4 +1,5 @@
 import os
+import sqlite3
 
 import cv2
 import numpy as np
@@ -66,3 +67,16 @@ def plane_view(texture: np.ndarray, metres_per_texel: float, K: np.ndarray, R: n
     z = np.where(inside & (z > 0), z, np.nan).astype(np.float32)
     img = np.where(np.isfinite(z), img, 0).astype(np.uint8)
     return img, z
+
+
+def images_with_features(db) -> int:
+    """Images with keypoints in a COLMAP database that another process may be writing
+    (read-only, no waiting; 0 while it does not exist or is locked)."""
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)
+        try:
+            return con.execute("SELECT COUNT(*) FROM keypoints").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0

@@ -20,7 +20,7 @@ from rectified_colmap.cli import main
 from rectified_colmap.extract import extract
 from rectified_colmap.io import hloc_h5
 from rectified_colmap.io.colmap_db import PROVENANCE_TABLE, ColmapDatabase
-from tests.conftest import look_at, plane_view, textured_image
+from tests.conftest import images_with_features, look_at, plane_view, textured_image
 
 K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
 PARAMS = "300,300,160,120"
@@ -430,17 +430,6 @@ def test_second_writer_waits_naming_the_holder(tmp_path, caplog):
         pass
 
 
-def _count_done(db: Path) -> int:
-    try:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=0.1)
-        try:
-            return con.execute("SELECT COUNT(*) FROM keypoints").fetchone()[0]
-        finally:
-            con.close()
-    except sqlite3.Error:
-        return 0
-
-
 @pytest.mark.slow
 def test_kill_9_mid_run_leaves_valid_files_and_resumes_to_a_clean_result(images, tmp_path):
     root = tmp_path / "images"
@@ -459,7 +448,7 @@ def test_kill_9_mid_run_leaves_valid_files_and_resumes_to_a_clean_result(images,
     for kill_after in (1, 5, 10):
         proc = subprocess.Popen(cmd + out(killed), cwd=REPO, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
-        while proc.poll() is None and _count_done(killed / "db.db") < kill_after:
+        while proc.poll() is None and images_with_features(killed / "db.db") < kill_after:
             time.sleep(0.005)
         proc.kill()
         proc.wait()

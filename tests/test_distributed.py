@@ -15,6 +15,7 @@ from rectified_colmap.distributed import parse_shard, shard_names, shard_of
 from rectified_colmap.extract import extract
 from rectified_colmap.io import hloc_h5
 from rectified_colmap.io.merge import merge_databases, merge_feature_files
+from tests.conftest import images_with_features
 
 REPO = Path(__file__).resolve().parent.parent
 NUM_IMAGES = 6
@@ -184,25 +185,16 @@ def test_ray_run_equals_one_run_and_a_killed_driver_resumes(street, single, tmp_
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.monotonic() + 240
-    while proc.poll() is None and time.monotonic() < deadline and _done(killed) < 2:
+    while (proc.poll() is None and time.monotonic() < deadline
+           and images_with_features(killed / "db.db") < 2):
         time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    assert 0 < _done(killed) < NUM_IMAGES, "the kill did not land mid-run"
+    done = images_with_features(killed / "db.db")
+    assert 0 < done < NUM_IMAGES, "the kill did not land mid-run"
     s = _extract(street, killed, ray_address="local", num_workers=2)
     assert s.ok and len(s.skipped) + len(s.copied) + len(s.done) == NUM_IMAGES
     assert_same_outputs(single, killed)
-
-
-def _done(out: Path) -> int:
-    try:
-        con = sqlite3.connect(f"file:{out / 'db.db'}?mode=ro", uri=True, timeout=0.1)
-        try:
-            return con.execute("SELECT COUNT(*) FROM keypoints").fetchone()[0]
-        finally:
-            con.close()
-    except sqlite3.Error:
-        return 0
 
 
 def test_ray_flag_without_ray_is_a_clear_error(street, tmp_path, monkeypatch):
