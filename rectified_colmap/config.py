@@ -262,6 +262,24 @@ class EvalConf:
 
 
 @dataclass
+class HomographyConf:
+    """Planar-pair evaluation (rectified_colmap.eval.homography, evaluate-homography)."""
+
+    ratio: float = 0.8
+    mutual: bool = True
+    ransac_threshold: float = 3.0
+    """RANSAC reprojection threshold (pixels of image 1)."""
+    ransac_iters: int = 10000
+    ransac_confidence: float = 0.9999
+    gt_threshold: float = 3.0
+    """A match is GT-consistent when H_gt maps x0 within this of x1 (pixels)."""
+    success_px: float = 10.0
+    """A pair is solved when the error over the visible overlap is below this."""
+    grid_step: int = 10
+    """Spacing (pixels of image 0) of the grid behind ``visible_err``."""
+
+
+@dataclass
 class LocalizeConf:
     """Offline localization against a triangulated reference (rectified_colmap.eval.localize)."""
 

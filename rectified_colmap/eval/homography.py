@@ -38,26 +38,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..config import HomographyConf  # noqa: F401 (part of this module's API)
 from ..conventions import from_opencv_points
 from .matching import FeatureSource, match_ratio
 
 logger = logging.getLogger(__name__)
-
-@dataclass
-class HomographyConf:
-    ratio: float = 0.8
-    mutual: bool = True
-    ransac_threshold: float = 3.0
-    """RANSAC reprojection threshold (pixels of image 1)."""
-    ransac_iters: int = 10000
-    ransac_confidence: float = 0.9999
-    gt_threshold: float = 3.0
-    """A match is GT-consistent when H_gt maps x0 within this of x1 (pixels)."""
-    success_px: float = 10.0
-    """A pair is solved when the error over the visible overlap is below this."""
-    grid_step: int = 10
-    """Spacing (pixels of image 0) of the grid behind ``visible_err``."""
-
 
 @dataclass
 class HomographyPair:
