@@ -201,7 +201,7 @@ class _Camera:
 
 def _new_camera(path: Path, model: str | None, params: list[float] | None) -> _Camera:
     if model and params:
-        h, w = _image_size(path)
+        w, h = image_size(path)
         return _Camera(cam_utils.make_camera(model, params, w, h), True)
     if not path.is_file():
         raise ImageError("no such image file")
@@ -210,12 +210,6 @@ def _new_camera(path: Path, model: str | None, params: list[float] | None) -> _C
     except ValueError:
         raise ImageError("cannot decode image (corrupt or unsupported format)") from None
     return _Camera(cam, has_prior)
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    """(H, W) of an image file."""
-    w, h = image_size(path)
-    return h, w
 
 
 def _check_camera_args(camera_model: str | None, camera_params) -> None:
@@ -392,7 +386,7 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
                 camera = cameras[found[1]]
             elif single_camera and shared is not None:
                 camera = shared
-                h, w = _image_size(path)
+                w, h = image_size(path)
                 if (w, h) != (camera.camera.width, camera.camera.height):
                     raise ImageError(f"{w}x{h} differs from the single camera's "
                                      f"{camera.camera.width}x{camera.camera.height}")
@@ -403,8 +397,9 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
                 if single_camera:
                     shared = camera
             if in_h5 and not overwrite:  # the database lacks it: the hloc file's features
-                feats = hloc_h5.read_features(h5.path, name)
-                size = tuple(int(v) for v in hloc_h5.read(h5.path, name)["image_size"])
+                arrays = hloc_h5.read(h5.path, name)  # read once: features and size
+                feats = hloc_h5.features_from_arrays(arrays, f"{h5.path}: {name!r}")
+                size = tuple(int(v) for v in arrays["image_size"])
                 if size != (camera.camera.width, camera.camera.height):
                     raise ImageError(f"{h5.path} says the image is {size[0]}x{size[1]}, "
                                      f"its camera is {camera.camera.width}x"

@@ -260,8 +260,7 @@ def _list(folder: Path, names: list[str]) -> Path:
     (["--image_list", "{tmp}/nolist.txt"], "nolist.txt: cannot read the image list"),
 ], ids=["param-count", "camera-model", "model-name", "corrupt-model", "missing-model",
         "depth-folder", "image-list"])
-def test_bad_arguments_fail_before_anything_is_written(images, tmp_path, capfd, args,
-                                                       expect):
+def test_bad_arguments_fail_before_anything_is_written(images, tmp_path, args, expect):
     (tmp_path / "corrupt.onnx").write_bytes(b"not a protobuf")
     args = [a.replace("{tmp}", str(tmp_path)) for a in args]
     db, h5 = tmp_path / "out" / "db.db", tmp_path / "out" / "f.h5"

@@ -388,17 +388,22 @@ def read_features(path: Path | str, name: str) -> Features:
     Frames are similarities from ``scales`` and ``oris`` (degrees) where the file has them
     (an affine shape is not stored in hloc files), else unit scale. Raises ValueError when
     the descriptors are not 128-dimensional SIFT."""
-    g = read(path, name)
+    return features_from_arrays(read(path, name), f"{path}: {name!r}")
+
+
+def features_from_arrays(g: dict[str, np.ndarray], where: str = "") -> Features:
+    """:func:`read`'s datasets of one image -> Features (see :func:`read_features`);
+    ``where`` names the image in errors."""
     kp = np.asarray(g["keypoints"], dtype=np.float64)
     desc = np.asarray(g["descriptors"])
     n = len(kp)
     if desc.ndim != 2 or desc.shape != (128, n):
-        raise ValueError(f"{path}: {name!r}: descriptors {desc.shape} are not 128-dim SIFT "
-                         f"for {n} keypoints")
+        raise ValueError(f"{where}: descriptors {desc.shape} are not 128-dim SIFT for {n} "
+                         "keypoints")
     scales = np.asarray(g.get("scales", np.ones(n)), dtype=np.float64).reshape(-1)
     oris = np.deg2rad(np.asarray(g.get("oris", np.zeros(n)), dtype=np.float64).reshape(-1))
     if len(scales) != n or len(oris) != n:
-        raise ValueError(f"{path}: {name!r}: scales/oris do not match {n} keypoints")
+        raise ValueError(f"{where}: scales/oris do not match {n} keypoints")
     return Features(kp, similarity_frames(scales, oris), rootsift_bytes(desc.T),
                     np.full(n, -1, np.int32))
 

@@ -63,9 +63,10 @@ def check_writable(path: Path | str, what: str = "output") -> None:
 
 
 def lock_path(path: Path | str) -> Path:
-    """The lock file of an output: ``<path>.lock`` beside it."""
+    """The lock file of an output: ``<path>.lock`` beside it (folder symlinks resolved, so
+    every spelling of the path shares one lock)."""
     path = Path(path).absolute()
-    return path.with_name(path.name + ".lock")
+    return path.parent.resolve() / (path.name + ".lock")
 
 
 class OutputLock:
@@ -75,7 +76,7 @@ class OutputLock:
 
     def __init__(self, path: Path | str, poll_seconds: float = 0.2):
         self.path = Path(path)
-        self.file = lock_path(self.path).parent.resolve() / lock_path(self.path).name
+        self.file = lock_path(self.path)
         self.poll_seconds = poll_seconds
         self._held = False
 
