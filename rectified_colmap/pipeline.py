@@ -127,7 +127,8 @@ def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: Extr
     y1 = min(H, int(np.ceil((rows[-1] + 1) * H / h)) + margin)
     box = region[int(y0 * h / H):int(np.ceil(y1 * h / H)), int(x0 * w / W):int(np.ceil(x1 * w / W))]
     n = round(budget * box.size / max(region.sum(), 1))  # SIFT's budget covers the whole box
-    feats = detect_sift(np.ascontiguousarray(gray[y0:y1, x0:x1]), conf.sift, n)
+    feats = detect_sift(np.ascontiguousarray(gray[y0:y1, x0:x1]), conf.sift, n,
+                        coarse_first=conf.sift.coarse_first)
     feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
 
@@ -223,7 +224,8 @@ def rectified_features(gray: np.ndarray, camera: pycolmap.Camera, rect: Rectific
                        index: int, budget: int, conf: ExtractConf) -> Features:
     """SIFT inside one rectified patch, mapped back to the original image."""
     patch_img = warp_to_rectified(gray, camera, rect)
-    feats = detect_sift(patch_img, conf.sift, budget, conf.sift.patch_first_octave)
+    feats = detect_sift(patch_img, conf.sift, budget, conf.sift.patch_first_octave,
+                        coarse_first=conf.sift.coarse_first)
     if len(feats) == 0:
         return feats
     b = conf.rectify.border

@@ -30,12 +30,10 @@ of the same runs. ``--clock wall`` measures every column in wall seconds.
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import sys
 import time
 import types
-from dataclasses import fields
 from pathlib import Path
 
 for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -46,7 +44,7 @@ import numpy as np  # noqa: E402
 
 from rectified_colmap import camera as cam_utils  # noqa: E402
 from rectified_colmap import features, pipeline  # noqa: E402
-from rectified_colmap.config import ExtractConf, SiftConf, confs  # noqa: E402
+from rectified_colmap.config import ExtractConf, confs  # noqa: E402
 from rectified_colmap.depth import DepthMap  # noqa: E402
 from rectified_colmap.extract import list_images, read_image  # noqa: E402
 from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
@@ -78,30 +76,6 @@ def reset_peak() -> None:
             f.write("5")
     except OSError:
         pass
-
-
-def use_coarse_first(conf: ExtractConf) -> None:
-    """Rectified SIFT with ``coarse_first`` SIFT in its parts: plain SIFT on the image (the
-    fill pool) and the patches; the plain path of images without planes stays one exact
-    COLMAP call. Through ``SiftConf.coarse_first`` where the configuration has it, else by
-    switching the pipeline's detect_sift during its plain_features and rectified_features."""
-    if "coarse_first" in {f.name for f in fields(SiftConf)}:
-        conf.sift.coarse_first = True
-        return
-    coarse = functools.partial(detect_sift, coarse_first=True)
-
-    def wrap(part):
-        @functools.wraps(part)
-        def run(*args, **kwargs):
-            pipeline.detect_sift = coarse
-            try:
-                return part(*args, **kwargs)
-            finally:
-                pipeline.detect_sift = detect_sift
-        return run
-
-    pipeline.plain_features = wrap(pipeline.plain_features)
-    pipeline.rectified_features = wrap(pipeline.rectified_features)
 
 
 def synthetic_inputs(n: int, width: int, height: int, seed: int):
@@ -182,8 +156,7 @@ def main(argv=None) -> int:
     p.add_argument("--coarse_first", action="store_true",
                    help="coarse_first SIFT in the parts of rectified SIFT (see features.py)")
     p.add_argument("--exact_sift", action="store_true",
-                   help="exact COLMAP calls in every part (where the configuration has "
-                        "sift.coarse_first)")
+                   help="exact COLMAP calls in every part (sift.coarse_first off)")
     p.add_argument("--retain_memory", action="store_true",
                    help="features.retain_freed_memory() first (both methods)")
     p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
@@ -202,10 +175,8 @@ def main(argv=None) -> int:
     conf = ExtractConf.from_dict(confs[args.conf])
     if args.coarse_first and args.exact_sift:
         p.error("--coarse_first or --exact_sift, not both")
-    if args.coarse_first:
-        use_coarse_first(conf)
-    elif args.exact_sift and hasattr(conf.sift, "coarse_first"):
-        conf.sift.coarse_first = False
+    if args.coarse_first or args.exact_sift:
+        conf.sift.coarse_first = args.coarse_first
     if args.patch_first_octave is not None:
         conf.sift.patch_first_octave = args.patch_first_octave
 
