@@ -18,6 +18,7 @@ import pycolmap
 
 from . import synth
 from .extract import DEFAULT_DEPTH_MODEL, extract
+from .geometry import rotation_angle_deg
 
 logger = logging.getLogger(__name__)
 
@@ -72,7 +73,6 @@ def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH
         for n, im in ims.items():  # relative rotations to the reference image vs GT
             R_est = (im.cam_from_world() * ims[ref].cam_from_world().inverse()).rotation.matrix()
             R_gt = (gt[n] * gt[ref].inverse()).rotation.matrix()
-            cos = (np.trace(R_est.T @ R_gt) - 1) / 2
-            errs.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+            errs.append(rotation_angle_deg(R_est.T @ R_gt))
         result["max_rot_err_deg"] = float(max(errs))
     return result

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from .config import PlaneConf
+from .geometry import order_frame
 
 logger = logging.getLogger(__name__)
 
@@ -116,13 +117,8 @@ def _orthogonal_kmeans(n: np.ndarray, D: np.ndarray, cos_t: float, num_iters: in
 def _canonical(D: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Order axes by support (descending), face the first two toward the camera (d_z <= 0),
     and make the frame right-handed."""
-    order = np.argsort(-counts, kind="stable")
-    D, counts = D[order].copy(), counts[order]
-    for i in (0, 1):
-        if D[i, 2] > 0:
-            D[i] *= -1.0
-    D[2] = np.cross(D[0], D[1])
-    return D, counts
+    D, order = order_frame(D, counts)
+    return D, counts[order]
 
 
 def fit_dominant_directions(normals: np.ndarray, conf: PlaneConf = PlaneConf(),

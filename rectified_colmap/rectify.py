@@ -25,6 +25,7 @@ import pycolmap
 from . import camera as cam_utils
 from .config import RectifyConf
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
+from .geometry import smallest_rotation
 from .planes import Patch
 
 logger = logging.getLogger(__name__)
@@ -55,19 +56,8 @@ def rectifying_rotation(normal: np.ndarray) -> np.ndarray:
     na = np.linalg.norm(a)
     if not np.isfinite(na) or na == 0:
         raise ValueError(f"rectifying_rotation: invalid normal {normal}")
-    a = a / na
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(a, z)  # = (a_y, -a_x, 0)
-    s = np.linalg.norm(axis)
-    c = float(a @ z)
-    if s < 1e-12:
-        # a = +z: identity; a = -z: half turn about x (any axis in the image plane works).
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    axis /= s
-    angle = np.arctan2(s, c)
-    Kx = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]],
-                   [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1.0 - np.cos(angle)) * (Kx @ Kx)
+    # a = -z gives the half turn about x (any axis in the image plane would do)
+    return smallest_rotation(a / na, np.array([0.0, 0.0, 1.0]))
 
 
 def image_to_rectified_homography(camera: pycolmap.Camera, rect: Rectification) -> np.ndarray:

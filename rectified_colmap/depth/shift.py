@@ -25,6 +25,7 @@ import numpy as np
 import pycolmap
 
 from ..config import ExtractConf, NormalConf, PlaneConf
+from ..geometry import scaled_size
 from . import resample_depth
 
 logger = logging.getLogger(__name__)
@@ -96,8 +97,7 @@ def estimate_shift(disparity: np.ndarray, camera: pycolmap.Camera,
     rng = rng or np.random.default_rng(0)
     disparity = np.where(np.isfinite(disparity), disparity, np.nan).astype(np.float32)
     h0, w0 = disparity.shape
-    s = min(1.0, max_size / max(w0, h0), conf.normals.work_max_size / max(w0, h0))
-    w, h = max(8, round(w0 * s)), max(8, round(h0 * s))
+    w, h = scaled_size(w0, h0, min(max_size, conf.normals.work_max_size))
     p = resample_depth(disparity, w, h)
     rays = cam_utils.grid_rays(camera, w, h)
     ncf = NormalConf(**{**vars(conf.normals)})

@@ -29,6 +29,7 @@ import numpy as np
 import pycolmap
 
 from ..config import LocalizeConf
+from ..geometry import rotation_angle_deg
 from .matching import FeatureSource, match_ratio
 from .relpose import sampson_error, fundamental_from_pose
 
@@ -200,8 +201,7 @@ def pose_error(est: pycolmap.Rigid3d, gt: pycolmap.Rigid3d) -> tuple[float, floa
     Re, Rg = np.asarray(est.rotation.matrix()), np.asarray(gt.rotation.matrix())
     ce = -Re.T @ np.asarray(est.translation)
     cg = -Rg.T @ np.asarray(gt.translation)
-    c = (np.trace(Re.T @ Rg) - 1) / 2
-    return float(np.linalg.norm(ce - cg)), float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+    return float(np.linalg.norm(ce - cg)), rotation_angle_deg(Re.T @ Rg)
 
 
 def pose_accuracy(results: Mapping[str, QueryResult], gt: Mapping[str, pycolmap.Rigid3d],

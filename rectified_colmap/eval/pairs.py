@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import rotation_angle_deg  # noqa: F401 (also importable from here)
+
 logger = logging.getLogger(__name__)
 
 
@@ -49,12 +51,6 @@ class Pair:
     def rotation_deg(self) -> float:
         """Angle of the ground-truth relative rotation (degrees)."""
         return rotation_angle_deg(self.R)
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix, in degrees, in [0, 180]."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def parse_pair_line(line: str, where: str = "") -> Pair:

@@ -27,17 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from ..config import EvalConf
+from ..geometry import angle_between_deg, rotation_angle_deg, skew
 from .matching import FeatureSource, match_ratio
-from .pairs import Pair, rotation_angle_deg
+from .pairs import Pair
 
 logger = logging.getLogger(__name__)
 
 FAILED_DEG = 180.0
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def fundamental_from_pose(K0: np.ndarray, K1: np.ndarray, R: np.ndarray, t: np.ndarray
@@ -56,13 +52,6 @@ def sampson_error(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
     num = np.sum(h1 * Fx0, 1) ** 2
     den = Fx0[:, 0] ** 2 + Fx0[:, 1] ** 2 + Ftx1[:, 0] ** 2 + Ftx1[:, 1] ** 2
     return np.sqrt(num / np.maximum(den, 1e-30))
-
-
-def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na < 1e-12 or nb < 1e-12:
-        return float("nan")
-    return float(np.degrees(np.arccos(np.clip(np.dot(a, b) / (na * nb), -1.0, 1.0))))
 
 
 def pose_errors(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray

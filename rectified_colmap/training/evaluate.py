@@ -36,18 +36,12 @@ from pathlib import Path
 import numpy as np
 
 from ..config import NormalConf, PlaneConf
-from ..conventions import pixel_centers
+from ..geometry import angle_deg, rays_from_K
 from ..normals import backproject, estimate_normals
 from ..planes import fit_dominant_directions
 from .data import synth_sample
 
 logger = logging.getLogger(__name__)
-
-
-def rays_from_K(K: np.ndarray, width: int, height: int) -> np.ndarray:
-    xy = pixel_centers(width, height)
-    return np.stack([(xy[..., 0] - K[0, 2]) / K[0, 0], (xy[..., 1] - K[1, 2]) / K[1, 1],
-                     np.ones((height, width))], -1).astype(np.float32)
 
 
 def planar_mask(normals: np.ndarray, depth: np.ndarray, r: int = 3) -> np.ndarray:
@@ -61,11 +55,6 @@ def planar_mask(normals: np.ndarray, depth: np.ndarray, r: int = 3) -> np.ndarra
         ch = normals[..., c].astype(np.float32)
         ok &= (cv2.dilate(ch, k) - cv2.erode(ch, k)) < 1e-3
     return ok
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = np.clip((a * b).sum(-1), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
 
 
 def direction_error(dirs: np.ndarray | None, true_axes: np.ndarray) -> float:
@@ -86,7 +75,7 @@ def evaluate(model: str | Path, num: int = 24, seed: int = 900_000_000, width: i
     rows = []
     for i in range(num):
         s = synth_sample(seed + i, width, height, texture_dir)
-        rays = rays_from_K(s["K"], width, height)
+        rays = rays_from_K(s["K"], width, height).astype(np.float32)
         gt_n = s["normals"].astype(np.float64)
         mask = planar_mask(s["normals"], s["depth"])
         pred = src(s["image"]).to_depth()
