@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rectified_colmap.cli.evaluate import write_outputs
 from rectified_colmap.config import EvalConf, LocalizeConf
 from rectified_colmap.eval.localize import accuracy_table, localize_with_model
 from rectified_colmap.eval.pairs import read_pairs_with_gt
 from rectified_colmap.eval.relpose import evaluate_pairs
+from rectified_colmap.eval.report import write_outputs
 
 logger = logging.getLogger("eval_strecha")
 

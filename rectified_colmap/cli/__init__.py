@@ -32,6 +32,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def methods_arg(specs: list[str]) -> dict:
+    """``--features METHOD=H5 ...`` -> {method: Path} (eval.matching.parse_methods); an error
+    stops the command with its message (SystemExit)."""
+    from ..eval.matching import parse_methods
+
+    try:
+        return parse_methods(specs)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+
+
 EXIT_ERROR = 2
 """Exit code of a run that stopped on an error before or instead of doing its work (a run
 that went through but had failed images exits with 1)."""

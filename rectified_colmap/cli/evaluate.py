@@ -3,29 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
+from . import methods_arg
+
 logger = logging.getLogger(__name__)
-
-
-def parse_methods(specs: list[str]) -> dict[str, Path]:
-    """``["sift=a.h5", "rect=b.h5"]`` -> {"sift": Path("a.h5"), ...} (a bare path is named
-    after its stem)."""
-    out: dict[str, Path] = {}
-    for spec in specs:
-        name, sep, path = spec.partition("=")
-        if not sep:
-            name, path = Path(spec).stem, spec
-        if not name or not path:
-            raise SystemExit(f"--features {spec!r}: expected method=path")
-        if name in out:
-            raise SystemExit(f"--features: method {name!r} given twice")
-        if not Path(path).is_file():
-            raise SystemExit(f"--features {spec!r}: {path} is not a file")
-        out[name] = Path(path)
-    return out
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -90,7 +73,7 @@ def run_homography(args: argparse.Namespace) -> int:
     from ..eval.homography import (HomographyConf, evaluate_homography_pairs,
                                    homography_markdown, read_homography_pairs)
 
-    methods = parse_methods(args.features)
+    methods = methods_arg(args.features)
     conf = HomographyConf()
     for key in ("ratio", "ransac_threshold", "success_px"):
         if getattr(args, key) is not None:
@@ -133,33 +116,14 @@ def check_matplotlib() -> None:
                          "(or pass --no_plot)") from None
 
 
-def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str = "") -> str:
-    from ..eval import report
-
-    out.mkdir(parents=True, exist_ok=True)
-    report.write_csv(out / "records.csv", records)
-    table = report.markdown_table(records, conf.bin_deg, conf.auc_thresholds,
-                                  conf.success_deg, conf.min_correct)
-    methods = report.methods_of(records)
-    if len(methods) > 1:  # the first method of --features is the baseline
-        table += ("\nPaired with " + methods[0] + " (same pairs; p: exact two-sided)\n\n"
-                  + report.paired_markdown(records, methods[0], conf.bin_deg))
-    (out / "summary.md").write_text(table)
-    (out / "summary.json").write_text(json.dumps(
-        report.summary(records, conf.auc_thresholds), indent=1))
-    if plot:
-        report.plot_success(out / "success.png", records, conf.bin_deg, title,
-                            conf.success_deg)
-    return table
-
-
 def run(args: argparse.Namespace) -> int:
     from ..eval.pairs import read_pairs_with_gt, read_strong_viewpoint_changes
     from ..eval.relpose import evaluate_pairs
+    from ..eval.report import write_outputs
 
     if not args.no_plot:
         check_matplotlib()
-    methods = parse_methods(args.features)
+    methods = methods_arg(args.features)
     if args.svc_root is not None:
         pairs = read_strong_viewpoint_changes(args.svc_root)
     else:

@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from . import methods_arg
+
 logger = logging.getLogger(__name__)
 
 
@@ -45,7 +47,6 @@ def run(args: argparse.Namespace) -> int:
     from ..config import LocalizeConf
     from ..eval.aachen import read_query_list
     from ..eval.localize import accuracy_table, localize_with_model, write_poses
-    from .evaluate import parse_methods
 
     conf = LocalizeConf()
     for key in ("ratio", "ransac_max_error", "num_retrieved"):
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"--reference_model {args.reference_model}: cannot read a COLMAP "
                          f"model ({e})") from None
     queries = read_query_list(args.queries) if args.queries else None
-    methods = parse_methods(args.features)
+    methods = methods_arg(args.features)
     out = args.output_dir
     out.mkdir(parents=True, exist_ok=True)
     rows, counts = {}, {}

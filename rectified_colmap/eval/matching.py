@@ -22,6 +22,27 @@ logger = logging.getLogger(__name__)
 _CHUNK = 2048
 
 
+def parse_methods(specs: list[str]) -> dict[str, Path]:
+    """Command-line feature files per method: ``["sift=a.h5", "rect=b.h5"]`` ->
+    {"sift": Path("a.h5"), ...} (a bare path is named after its stem).
+
+    ValueError for an empty name or path, a method given twice, or a path that is not a
+    file."""
+    out: dict[str, Path] = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep:
+            name, path = Path(spec).stem, spec
+        if not name or not path:
+            raise ValueError(f"--features {spec!r}: expected method=path")
+        if name in out:
+            raise ValueError(f"--features: method {name!r} given twice")
+        if not Path(path).is_file():
+            raise ValueError(f"--features {spec!r}: {path} is not a file")
+        out[name] = Path(path)
+    return out
+
+
 class FeatureSource:
     """Features by image name from an hloc h5 file or an in-memory mapping.
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import logging
 from pathlib import Path
 
@@ -275,3 +276,23 @@ def plot_success(path: Path | str, records: list[dict], bin_deg: float = 10.0,
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str = "") -> str:
+    """records.csv, summary.md (with the paired comparison against the first method when
+    there are several), summary.json and, with ``plot``, success.png into ``out``, for an
+    EvalConf ``conf``. Returns the markdown table."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(out / "records.csv", records)
+    table = markdown_table(records, conf.bin_deg, conf.auc_thresholds, conf.success_deg,
+                           conf.min_correct)
+    methods = methods_of(records)
+    if len(methods) > 1:  # the first method of --features is the baseline
+        table += ("\nPaired with " + methods[0] + " (same pairs; p: exact two-sided)\n\n"
+                  + paired_markdown(records, methods[0], conf.bin_deg))
+    (out / "summary.md").write_text(table)
+    (out / "summary.json").write_text(json.dumps(summary(records, conf.auc_thresholds),
+                                                 indent=1))
+    if plot:
+        plot_success(out / "success.png", records, conf.bin_deg, title, conf.success_deg)
+    return table
