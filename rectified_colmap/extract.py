@@ -49,8 +49,7 @@ from tqdm import tqdm
 from . import camera as cam_utils
 from .config import ExtractConf
 from .features import Features
-from .io.images import (IMAGE_EXTENSIONS, ImageError, decode_image, image_size,  # noqa: F401
-                        list_images, read_image)
+from .io.images import ImageError, decode_image, image_size, list_images, read_image
 from .pipeline import ImageResult, extract_image
 
 logger = logging.getLogger(__name__)

@@ -29,7 +29,8 @@ def features(db: Path) -> dict:
 
 
 def main() -> None:
-    from rectified_colmap.extract import extract, list_images
+    from rectified_colmap.extract import extract
+    from rectified_colmap.io.images import list_images
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--images", type=Path)

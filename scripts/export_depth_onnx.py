@@ -32,9 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from rectified_colmap.depth.contract import ModelSpec, attach_metadata  # noqa: E402
+from rectified_colmap.depth.contract import ModelSpec, attach_metadata
 
 logger = logging.getLogger("export_depth_onnx")
 OPSET = 17
