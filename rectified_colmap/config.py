@@ -300,3 +300,11 @@ class LocalizeConf:
     """Database images matched per query: 0 = all of them."""
     thresholds: tuple = ((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))
     """(metres, degrees) accuracy thresholds (Aachen Day-Night)."""
+
+
+# -- depth inputs of extraction (rectified_colmap.extract, depth.files, the CLI) ----------
+
+DEFAULT_DEPTH_MODEL = "rectsift-lite0"
+"""Depth network for images without a depth file (a name in rectified_colmap.depth.registry)."""
+DEFAULT_PNG_SCALE = 0.001
+"""16-bit PNG depth files: depth = value x scale (millimetres)."""
