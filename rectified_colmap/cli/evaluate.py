@@ -12,12 +12,15 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from ..config import EvalConf, HomographyConf
+
+    e, hc = EvalConf(), HomographyConf()  # the defaults the help texts show
     p = sub.add_parser(
         "evaluate-pairs", help="relative-pose evaluation of feature files on image pairs",
         description="Match each method's features (ratio test), estimate the essential "
                     "matrix with the known intrinsics and report success (rotation error "
-                    "under 5 deg) per ground-truth rotation bin, pose AUC and GT-correct "
-                    "matches. Writes records.csv, summary.md and success.png.")
+                    f"under {e.success_deg:g} deg) per ground-truth rotation bin, pose AUC "
+                    "and GT-correct matches. Writes records.csv, summary.md and success.png.")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--pairs", type=Path, nargs="+",
                      help="pair file(s) in the SuperGlue format (name0 name1 rot0 rot1 K0 K1 "
@@ -27,14 +30,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--features", nargs="+", required=True, metavar="METHOD=H5",
                    help="hloc feature files, one per method, e.g. sift=f1.h5 rectsift=f2.h5")
     p.add_argument("--output_dir", type=Path, required=True)
-    p.add_argument("--ratio", type=float, default=None, help="ratio test (0.8)")
+    p.add_argument("--ratio", type=float, default=None, help=f"ratio test ({e.ratio})")
     p.add_argument("--mutual", action="store_true", help="mutual nearest neighbours too")
     p.add_argument("--ransac_max_error", type=float, default=None,
-                   help="essential-matrix RANSAC threshold in pixels (2.0)")
+                   help=f"essential-matrix RANSAC threshold in pixels ({e.ransac_max_error})")
     p.add_argument("--bin_deg", type=float, default=None,
-                   help="width of the GT rotation bins (10; e.g. 30 for coarser bins)")
+                   help=f"width of the GT rotation bins ({e.bin_deg:g}; e.g. 30 for coarser "
+                        "bins)")
     p.add_argument("--epipolar_threshold", type=float, default=None,
-                   help="Sampson error (px) under which a match is GT-correct (3.0)")
+                   help="Sampson error (px) under which a match is GT-correct "
+                        f"({e.epipolar_threshold})")
     p.add_argument("--num_workers", type=int, default=1)
     p.add_argument("--max_pairs", type=int, default=None, help="only the first N pairs")
     p.add_argument("--no_plot", action="store_true", help="skip the PNG (no matplotlib)")
@@ -47,8 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Match each method's features (mutual NN + ratio test), estimate a "
                     "homography (RANSAC) and report, per pair and direction, the corner "
                     "error (HPatches), the error over the visible overlap (solved: under "
-                    "10 px) and the matches consistent with the ground-truth homography. "
-                    "Writes records.csv and summary.md.")
+                    f"{hc.success_px:g} px) and the matches consistent with the ground-truth "
+                    "homography. Writes records.csv and summary.md.")
     h.add_argument("--pairs", type=Path, required=True,
                    help="JSON list of {im0, im1, H[, pair, size0, size1, convention]}; H maps "
                         "im0 -> im1, OpenCV pixel convention unless convention = colmap "
@@ -57,11 +62,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="where im0/im1 are (only to read image sizes missing in the file)")
     h.add_argument("--features", nargs="+", required=True, metavar="METHOD=H5")
     h.add_argument("--output_dir", type=Path, required=True)
-    h.add_argument("--ratio", type=float, default=None, help="ratio test (0.8)")
+    h.add_argument("--ratio", type=float, default=None, help=f"ratio test ({hc.ratio})")
     h.add_argument("--no_mutual", action="store_true", help="no mutual check")
-    h.add_argument("--ransac_threshold", type=float, default=None, help="pixels (3.0)")
+    h.add_argument("--ransac_threshold", type=float, default=None,
+                   help=f"pixels ({hc.ransac_threshold})")
     h.add_argument("--success_px", type=float, default=None,
-                   help="solved when the visible-overlap error is under this (10)")
+                   help="solved when the visible-overlap error is under this "
+                        f"({hc.success_px:g})")
     h.add_argument("--one_direction", action="store_true",
                    help="only im0 -> im1 (default: both directions)")
     h.set_defaults(func=run_homography)

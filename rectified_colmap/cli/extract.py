@@ -11,6 +11,8 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from ..config import ExtractConf, confs
+
     p = sub.add_parser(
         "extract", help="extract rectified SIFT into a COLMAP database and/or hloc HDF5",
         description="Drop-in replacement of `colmap feature_extractor`: writes rectified "
@@ -44,7 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max_num_features", "--SiftExtraction.max_num_features",
                    dest="max_num_features", type=int, default=None,
                    help="feature budget per image, shared by patches and the rest "
-                        "(default: the configuration's, 8192 in rectsift)")
+                        "(default: the configuration's, "
+                        f"{ExtractConf.from_dict(confs['rectsift']).sift.max_num_features} in "
+                        "rectsift)")
     p.add_argument("--conf", default="rectsift",
                    help="named configuration (rectsift, rectsift-fast, sift) or a JSON file "
                         "of overrides, e.g. {\"rectify\": {\"max_viewing_angle_deg\": 85}}")

@@ -12,6 +12,9 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from ..config import LocalizeConf
+
+    c = LocalizeConf()  # the defaults the help texts show
     p = sub.add_parser(
         "localize", help="triangulate a reference from known poses and localize queries",
         description="Database images of a posed COLMAP model are triangulated with each "
@@ -28,15 +31,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="query list 'name MODEL W H params...'; default: hold out model "
                         "images (--holdout_every) with their poses as ground truth")
     p.add_argument("--holdout_every", type=int, default=3,
-                   help="every N-th model image (sorted by name, from the 2nd) is a query")
+                   help="every N-th model image (sorted by name, from the 2nd) is a query "
+                        "(%(default)s)")
     p.add_argument("--name_prefix", default="",
                    help="prefix turning model image names into feature names, e.g. images/")
     p.add_argument("--output_dir", type=Path, required=True)
-    p.add_argument("--ratio", type=float, default=None, help="ratio test (0.8)")
+    p.add_argument("--ratio", type=float, default=None, help=f"ratio test ({c.ratio})")
     p.add_argument("--ransac_max_error", type=float, default=None,
-                   help="absolute-pose RANSAC threshold in pixels (12)")
+                   help=f"absolute-pose RANSAC threshold in pixels ({c.ransac_max_error:g})")
     p.add_argument("--num_retrieved", type=int, default=None,
-                   help="database images matched per query (0 = all)")
+                   help=f"database images matched per query, 0 = all ({c.num_retrieved})")
     p.add_argument("--no_progress", action="store_true")
     p.set_defaults(func=run)
 
