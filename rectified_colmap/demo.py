@@ -17,7 +17,8 @@ import numpy as np
 import pycolmap
 
 from . import synth
-from .extract import DEFAULT_DEPTH_MODEL, extract
+from .config import DEFAULT_DEPTH_MODEL
+from .extract import extract
 from .geometry import rotation_angle_deg
 
 logger = logging.getLogger(__name__)

@@ -47,14 +47,12 @@ import pycolmap
 from tqdm import tqdm
 
 from . import camera as cam_utils
-from .config import ExtractConf
+from .config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf
 from .features import Features
 from .io.images import ImageError, decode_image, image_size, list_images, read_image
 from .pipeline import ImageResult, extract_image
 
 logger = logging.getLogger(__name__)
-
-DEFAULT_DEPTH_MODEL = "rectsift-lite0"
 
 
 @dataclass
@@ -226,7 +224,7 @@ def _check_camera_args(camera_model: str | None, camera_params) -> None:
 
 def extract(image_dir: Path, database: Path | None = None, hloc_features: Path | None = None,
             image_list: Path | list[str] | None = None, depth_path: Path | None = None,
-            depth_kind: str = "depth", png_scale: float = 0.001,
+            depth_kind: str = "depth", png_scale: float = DEFAULT_PNG_SCALE,
             depth_model: str | None = DEFAULT_DEPTH_MODEL,
             camera_model: str | None = None, camera_params: list[float] | str | None = None,
             single_camera: bool = False, conf: ExtractConf | dict | None = None,

@@ -98,7 +98,8 @@ def extract_features(method: str, images: Path, features: Path, cameras: dict, w
         hloc_extract.main(hconf, images, image_list=names, feature_path=features)
         return
     from rectified_colmap.eval.aachen import write_camera_database
-    from rectified_colmap.extract import DEFAULT_DEPTH_MODEL, extract
+    from rectified_colmap.config import DEFAULT_DEPTH_MODEL
+    from rectified_colmap.extract import extract
 
     # A database holding every image's camera: extract() uses these intrinsics (the
     # reference model's for database images, the query list's for queries).

@@ -55,7 +55,8 @@ def scene_camera(scene: Path) -> tuple[str, str]:
 
 
 def extract_method(scene: Path, method: str, out: Path, args) -> Path:
-    from rectified_colmap.extract import DEFAULT_DEPTH_MODEL, extract
+    from rectified_colmap.config import DEFAULT_DEPTH_MODEL
+    from rectified_colmap.extract import extract
 
     h5 = out / "features" / scene.name / f"{method}.h5"
     names = [f"images/{p.name}" for p in sorted((scene / "images").glob("*.jpg"))]

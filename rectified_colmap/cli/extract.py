@@ -11,7 +11,7 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..config import ExtractConf, confs
+    from ..config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf, confs
 
     p = sub.add_parser(
         "extract", help="extract rectified SIFT into a COLMAP database and/or hloc HDF5",
@@ -29,9 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         ".npz, 16-bit .png, COLMAP .geometric.bin/.photometric.bin")
     p.add_argument("--depth_kind", default="depth", choices=["depth", "metric", "disparity"],
                    help="what the depth files hold (default %(default)s: z-depth up to scale)")
-    p.add_argument("--depth_png_scale", type=float, default=0.001,
+    p.add_argument("--depth_png_scale", type=float, default=DEFAULT_PNG_SCALE,
                    help="16-bit PNG depth = value x scale (default %(default)s: millimetres)")
-    p.add_argument("--depth_model", default="rectsift-lite0",
+    p.add_argument("--depth_model", default=DEFAULT_DEPTH_MODEL,
                    help="depth network for images without a depth file: a registry name "
                         "(`rectified-colmap models list`), a path to an .onnx, or 'none' "
                         "(default %(default)s)")

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from ..config import DEFAULT_PNG_SCALE
 from . import DEPTH_KINDS, DepthMap
 
 logger = logging.getLogger(__name__)
@@ -120,7 +121,7 @@ def _read_png(path: Path, png_scale: float) -> np.ndarray:
 
 
 def read_depth_file(path: str | Path, kind: str | None = None,
-                    png_scale: float = 0.001) -> DepthMap:
+                    png_scale: float = DEFAULT_PNG_SCALE) -> DepthMap:
     """Read one depth file (see module docstring) -> DepthMap.
 
     ``kind``: what the values are (default: the .npz's ``kind`` entry, else "depth").
@@ -156,7 +157,8 @@ def read_depth_file(path: str | Path, kind: str | None = None,
     return DepthMap(_as_2d(arr, path), kind)
 
 
-def write_depth_file(path: str | Path, depth: np.ndarray, png_scale: float = 0.001) -> Path:
+def write_depth_file(path: str | Path, depth: np.ndarray,
+                     png_scale: float = DEFAULT_PNG_SCALE) -> Path:
     """Write a (H, W) depth map in the format given by the suffix (for tests and tools).
     PNG: round(depth / png_scale) as uint16, invalid -> 0."""
     path = Path(path)
@@ -251,7 +253,8 @@ class FileDepthSource:
     Returns None (no error) when an image has no file; raises ValueError naming the file
     when it exists but is unreadable, corrupt, or of the wrong aspect ratio."""
 
-    def __init__(self, depth_root: str | Path, kind: str = "depth", png_scale: float = 0.001):
+    def __init__(self, depth_root: str | Path, kind: str = "depth",
+                 png_scale: float = DEFAULT_PNG_SCALE):
         self.root = Path(depth_root)
         if not self.root.is_dir():
             raise ValueError(f"{self.root}: depth folder does not exist")
