@@ -1,0 +1,181 @@
+#!/usr/bin/env python
+"""Whole-CLI extraction cost: `rectified-colmap extract` beside plain COLMAP SIFT.
+
+Each method runs as its own process on the same image folder, into a new COLMAP database,
+one after the other, single-threaded (one worker, one SIFT thread, one network thread), as
+a user would run it:
+
+- ``pycolmap``: ``pycolmap.extract_features`` (COLMAP SIFT, CPU, ``num_threads=1``), the
+  plain baseline with the same budget;
+- ``colmap``: ``colmap feature_extractor --SiftExtraction.use_gpu 0 --num_threads 1``
+  where the ``colmap`` executable is installed;
+- ``rectified``: ``rectified-colmap extract`` with the default configuration and the
+  embedded network (``--conf`` / ``--orientation`` to compare others).
+
+Everything a user waits for is counted: start-up and imports, decoding, camera setup, the
+network, SIFT, writing. Columns per image: CPU seconds of the process and its children
+(``os.wait4``; on a shared machine CPU seconds leave out the time waiting for a core, wall
+seconds do not), wall seconds, the process's peak resident memory, keypoints (from the
+database). ``ratio`` divides by the ``pycolmap`` row of the same run.
+
+    python scripts/bench_cli.py --image_path ../shared/data/strecha-dev/fountain-P11/images \\
+        --max_images 6 --camera_params 1379.74,1382.08,760.095,503.155
+    python scripts/bench_cli.py ... --resize 3072x2048      # upscaled copies
+    python scripts/bench_cli.py --synthetic 6               # rendered streets (PNG)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+PLAIN = """
+import sys, pycolmap
+db, images, n, names = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4].split(",")
+opts = pycolmap.FeatureExtractionOptions()
+opts.num_threads = 1
+opts.sift.max_num_features = n
+pycolmap.extract_features(db, images, image_names=names, extraction_options=opts,
+                          device=pycolmap.Device.cpu)
+"""
+
+
+def run_measured(cmd: list[str], env: dict | None = None) -> dict:
+    """Run ``cmd``; its wall seconds, CPU seconds (user + system, with its children) and
+    peak resident memory (MiB). Raises with its output when it fails."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+    out = proc.stdout.read()
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{cmd[0]} failed ({proc.returncode}):\n{out.decode()[-3000:]}")
+    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime,
+            "peak_MB": usage.ru_maxrss / 1024}
+
+
+def keypoints_per_image(database: Path) -> float:
+    with sqlite3.connect(database) as con:
+        rows = con.execute("SELECT rows FROM keypoints").fetchall()
+    return float(np.mean([r[0] for r in rows])) if rows else 0.0
+
+
+def prepare_images(args, folder: Path) -> list[str]:
+    """The benchmark's images in ``folder`` (copies, resized copies or renders)."""
+    if args.synthetic:
+        from rectified_colmap import synth
+
+        rng = np.random.default_rng(args.seed)
+        w, h = (int(v) for v in args.size.split("x"))
+        names = []
+        for i in range(args.synthetic):
+            scene = synth.street(rng)
+            camera = synth.pinhole_camera(w, h, 0.9 * w)
+            r = synth.render(scene, camera, synth.random_view(scene, rng, camera))
+            names.append(f"street_{i:03d}.png")
+            cv2.imwrite(str(folder / names[-1]), r.image[:, :, ::-1])
+        return names
+    from rectified_colmap.io.images import list_images
+
+    names = list_images(Path(args.image_path))[: args.max_images]
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        if args.resize:
+            w, h = (int(v) for v in args.resize.split("x"))
+            img = cv2.imread(str(Path(args.image_path) / name), cv2.IMREAD_COLOR)
+            cv2.imwrite(str(folder / name), cv2.resize(img, (w, h), interpolation=cv2.INTER_CUBIC),
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+        else:
+            shutil.copy(Path(args.image_path) / name, folder / name)
+    return names
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--image_path", type=Path)
+    p.add_argument("--max_images", type=int, default=6)
+    p.add_argument("--resize", help="resize copies of the photos to WxH first (JPEG q95)")
+    p.add_argument("--synthetic", type=int, default=0, help="render N street views instead")
+    p.add_argument("--size", default="1536x1024", help="rendered image size WxH")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--camera_params", help="passed to rectified-colmap (PINHOLE fx,fy,cx,cy "
+                   "of the original size; scaled with --resize)")
+    p.add_argument("--max_num_features", type=int, default=8192)
+    p.add_argument("--conf", help="--conf of rectified-colmap (default: its default)")
+    p.add_argument("--orientation", help="--orientation of rectified-colmap")
+    p.add_argument("--methods", nargs="+", default=["pycolmap", "colmap", "rectified"],
+                   choices=["pycolmap", "colmap", "rectified"])
+    args = p.parse_args(argv)
+    if not args.synthetic and args.image_path is None:
+        p.error("--image_path or --synthetic")
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_cli_"))
+    try:
+        images = tmp / "images"
+        images.mkdir()
+        names = prepare_images(args, images)
+        size = cv2.imread(str(images / names[0]), cv2.IMREAD_GRAYSCALE).shape[::-1]
+        n = args.max_num_features
+        cmds = {
+            "pycolmap": [sys.executable, "-c", PLAIN, None, str(images), str(n), ",".join(names)],
+            "colmap": ["colmap", "feature_extractor", "--database_path", None, "--image_path",
+                       str(images), "--SiftExtraction.use_gpu", "0",
+                       "--SiftExtraction.num_threads", "1",
+                       "--SiftExtraction.max_num_features", str(n)],
+            "rectified": ["rectified-colmap", "extract", "--database", None, "--image_path",
+                          str(images), "--max_num_features", str(n), "--no_progress"],
+        }
+        if args.camera_params:
+            params = [float(v) for v in args.camera_params.split(",")]
+            if args.resize and args.image_path:
+                w0, _ = cv2.imread(str(Path(args.image_path) / names[0]),
+                                   cv2.IMREAD_GRAYSCALE).shape[::-1]
+                params = [v * size[0] / w0 for v in params]
+            cmds["rectified"] += ["--camera_model", "PINHOLE",
+                                  "--camera_params", ",".join(f"{v:.6g}" for v in params)]
+        for flag in ("conf", "orientation"):
+            if getattr(args, flag):
+                cmds["rectified"] += [f"--{flag}", getattr(args, flag)]
+        if shutil.which("colmap") is None and "colmap" in args.methods:
+            print("colmap executable not found: skipping that row", file=sys.stderr)
+            args.methods.remove("colmap")
+
+        rows = {}
+        for method in args.methods:
+            db = tmp / f"{method}.db"
+            cmd = [db.as_posix() if c is None else c for c in cmds[method]]
+            rows[method] = run_measured(cmd, env) | {"kp": keypoints_per_image(db)}
+            print(f"{method}: {rows[method]['wall']:.1f} s wall", file=sys.stderr, flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    what = f"{args.synthetic} rendered streets" if args.synthetic else f"{len(names)} images"
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[0]
+    print(f"\n{what}, {size[0]}x{size[1]}, budget {n}; load average at end {load}\n")
+    print("| method | CPU s / image | wall s / image | CPU ratio | wall ratio | peak MB "
+          "| keypoints / image |")
+    print("|---|---|---|---|---|---|---|")
+    base = rows.get("pycolmap")
+    k = len(names)
+    for method, r in rows.items():
+        cpu_ratio = f"{r['cpu'] / base['cpu']:.2f}x" if base else "-"
+        wall_ratio = f"{r['wall'] / base['wall']:.2f}x" if base else "-"
+        print(f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} "
+              f"| {wall_ratio} | {r['peak_MB']:.0f} | {r['kp']:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
