@@ -153,3 +153,17 @@ def test_scripts_use_the_installed_package(script):
         assert not re.search(r"sys\.path\.(insert|append)|sys\.path\[", text), \
             f"{script} edits sys.path; import rectified_colmap from the installed package"
 
+
+def test_module_map_lists_every_module():
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    listed = set(re.findall(r"^\| `([^`]+)`", doc, flags=re.M))
+    missing = []
+    for path in MODULES.values():
+        rel = path.relative_to(PKG).as_posix()
+        parents = [p.as_posix() + "/" for p in path.relative_to(PKG).parents
+                   if p.as_posix() != "."]
+        if rel not in listed and not any(p in listed for p in parents):
+            missing.append(rel)
+    assert not missing, f"docs/architecture.md's module map lacks {missing}"
+    gone = sorted(e for e in listed if not (PKG / e.rstrip("/")).exists())
+    assert not gone, f"docs/architecture.md's module map lists missing files {gone}"
