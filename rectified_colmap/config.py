@@ -165,6 +165,17 @@ class VpConf:
     """Frame directions are trusted (finite sigma) only with two VPs holding at least this
     length fraction each (one such VP: only its own direction). Random clutter alone gives
     <= 0.07 per VP; streets and Strecha facades >= 0.11 for the two strongest."""
+    nfa_angle_deg: float = 1.0
+    """Chance-level test of each frame axis (vp.axis_log10_nfa): segments within this
+    angle of the VP count as its support..."""
+    nfa_window_deg: float = 10.0
+    """...against those within this angle (null: orientations locally uniform in it)."""
+    max_log10_nfa: float = -1.0
+    """An axis is trusted only when log10 of its number of false alarms (nested over the
+    frame's axes) is at most this (inf: no test). Measured (docs/vp.md): 240 views of
+    line-free blob textures in perspective give >= -3.6 for the first axis and >= -0.7 for
+    the second (5 views keep one trusted axis, none two); the second axis of Strecha and
+    York Urban frames <= -4.0; rendered street views of the ground: 3 of 12 lose it."""
     max_sigma_deg: float = 1.5
     """A frame direction may replace a depth direction only when its 1-sigma angular
     uncertainty (from the refinement's covariance) is below this."""

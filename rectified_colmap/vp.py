@@ -57,8 +57,7 @@ import pycolmap
 
 from . import camera as cam_utils
 from .config import VpConf
-from .conventions import pixel_centers, to_opencv_points
-from .conventions import from_opencv_points, to_opencv_points
+from .conventions import from_opencv_points, pixel_centers, to_opencv_points
 from .planes import Patch, PlaneResult
 
 logger = logging.getLogger(__name__)
@@ -106,6 +105,10 @@ class ManhattanFrame:
     """(3,) bool: enough segments support the row (conf.min_vp_segments/min_vp_support)."""
     labels: np.ndarray
     """(N,) int per segment: supported row, -1 for none."""
+    log10_nfa: np.ndarray = field(default_factory=lambda: np.full(3, -np.inf))
+    """(3,) log10 of each row's number of false alarms (axis_log10_nfa): how often
+    segments whose orientations are locally random would support a VP this sharply by
+    chance. Rows above conf.max_log10_nfa are never trusted."""
 
 
 @dataclass
@@ -276,11 +279,11 @@ def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.
         if not use.any():
             return F, labels, observed, np.full(3, np.inf)
         v = F[labels[use]]
-        l = seg.normals[use]
+        ln = seg.normals[use]
         m = seg.mids[use]
         s = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", m, v) ** 2, _MIN_SIN ** 2))
-        r = np.einsum("ij,ij->i", l, v) / s
-        J = np.cross(v, l) / s[:, None]
+        r = np.einsum("ij,ij->i", ln, v) / s
+        J = np.cross(v, ln) / s[:, None]
         # Cauchy weights: clutter passing the threshold pulls less than the true lines
         w = w_all[use] / (1.0 + (r / (_CS * sin_thr)) ** 2)
         A = (J * w[:, None]).T @ J
@@ -304,6 +307,62 @@ def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.
     sigma = sigma * _SIGMA_INFLATION
     sigma_deg = np.where(sigma < 1.0, np.degrees(sigma), np.inf)
     return F, labels, observed, sigma_deg
+
+
+# -- chance-level test -----------------------------------------------------------------
+
+def log10_binomial_tail(n: np.ndarray, k: np.ndarray, p: float) -> np.ndarray:
+    """log10 P[X >= k] for X ~ Binomial(n, p), exact, elementwise over integer arrays n, k
+    of one shape (any); 0 where k <= 0, -inf where k > n."""
+    n = np.asarray(n, np.int64)
+    k = np.asarray(k, np.int64)
+    nmax = int(max(n.max(initial=0), 1))
+    lf = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, nmax + 1)))])  # log j!
+    j = np.arange(nmax + 1)
+    nn, kk = n[..., None], k[..., None]
+    ok = (j >= kk) & (j <= nn)
+    logc = lf[np.minimum(nn, nmax)] - lf[j] - lf[np.clip(nn - j, 0, nmax)]
+    terms = np.where(ok, logc + j * np.log(p) + (nn - j) * np.log1p(-p), -np.inf)
+    top = terms.max(-1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = (top[..., 0] + np.log(np.exp(terms - np.where(np.isfinite(top), top, 0.0))
+                                    .sum(-1))) / np.log(10)
+    out = np.where(k <= 0, 0.0, out)
+    return np.where(k > n, -np.inf, out)
+
+
+def axis_log10_nfa(errors_deg: np.ndarray, conf: VpConf = VpConf()) -> np.ndarray:
+    """A-contrario test of each frame axis against locally random segment orientations.
+
+    errors_deg (N, 3): consistency angle (module docstring) of each segment with each
+    axis, degrees. Null hypothesis: near any VP, segment orientations are uniform within
+    the window w = conf.nfa_window_deg, so of the n_w segments within w of axis k (those
+    that are inliers of another axis excluded), each lies within t = conf.nfa_angle_deg
+    with probability t / w: P_k = P[Binomial(n_w, t / w) >= n_t], n_t the segments within
+    t. This keeps the broad orientation bias of foreshortened texture (which a test
+    against uniform orientations would take for structure) and rejects only what is
+    sharper than it: real lines meet their VP within LSD's precision.
+
+    Number of tests, nested (axes ranked by P_k): the first axis is any of 3 on the half
+    sphere (3 x 2 pi / t^2 cells, t in radians); given it, the second is any of 2 on its
+    orthogonal great circle (2 x pi / t); the third is then fixed (1). Returns (3,) log10
+    NFA per axis, of the frame up to that axis: log10(tests) + log10 P_k, raised to the
+    NFA of the better ranked axes (an axis is only as meaningful as the frame it needs)."""
+    E = np.asarray(errors_deg, np.float64).reshape(-1, 3)
+    t, w = float(conf.nfa_angle_deg), float(conf.nfa_window_deg)
+    if not 0.0 < t < w:
+        raise ValueError(f"vp: need 0 < nfa_angle_deg < nfa_window_deg, got {t}, {w}")
+    inl = E < t
+    other = np.stack([np.delete(inl, k, axis=1).any(1) for k in range(3)], 1) & ~inl
+    n_w = ((E < w) & ~other).sum(0)
+    n_t = inl.sum(0)
+    log_p = log10_binomial_tail(n_w, n_t, t / w)
+    rad = np.deg2rad(t)
+    tests = np.log10([3 * 2 * np.pi / rad ** 2, 2 * np.pi / rad, 1.0])
+    order = np.argsort(log_p, kind="stable")
+    out = np.empty(3)
+    out[order] = np.maximum.accumulate(log_p[order] + tests)
+    return out
 
 
 def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | None = None,
@@ -337,8 +396,12 @@ def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | 
     counts = np.bincount(labels[labels >= 0], minlength=3)
     support = np.bincount(labels[labels >= 0], weights=seg.lengths[labels >= 0],
                           minlength=3) / seg.lengths.sum()
-    # Trust needs strong VPs: random clutter alone reaches ~0.06 support per VP
-    strong = observed & (support >= conf.min_strong_support)
+    # Trust needs strong VPs: random clutter alone reaches ~0.06 support per VP; and
+    # sharp ones: foreshortened line-free texture gives 0.10-0.15 (axis_log10_nfa)
+    errors = np.degrees(np.arcsin(np.minimum(sin_errors(seg.normals, seg.mids, F), 1.0)))
+    log10_nfa = axis_log10_nfa(errors, conf)
+    strong = observed & (support >= conf.min_strong_support) & \
+        (log10_nfa <= conf.max_log10_nfa)
     if strong.sum() == 0:
         sigma = np.full(3, np.inf)
     elif strong.sum() == 1:
@@ -354,7 +417,7 @@ def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | 
     remap[order] = np.arange(3)
     labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
     return ManhattanFrame(F, sigma[order], support[order], counts[order], observed[order],
-                          labels)
+                          labels, log10_nfa[order])
 
 
 # -- fusion -------------------------------------------------------------------------------

@@ -6,13 +6,19 @@
 2. Cost of refine_directions on a 1536x1024 photo.
 3. Real photos (Strecha): the frame of each image rotated to the world by the GT pose;
    consistency across the images of a scene.
+4. ``--trust``: which frame axes are trusted (with and without the chance-level test,
+   vp.axis_log10_nfa) on line-free blob textures in perspective (tests/conftest), on
+   rubble (randomly oriented quads), on rendered streets (GT axes) and on real photos
+   (Strecha, EVD, York Urban with GT VPs; folders that are missing are skipped).
 
     python scripts/bench_vp.py /work/shared/data/strecha-dev [--viz OUT_DIR]
+    python scripts/bench_vp.py /work/shared/data/strecha-dev --trust [--num_textures 30]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -121,14 +127,120 @@ def strecha(scene: Path, conf: VpConf, viz: Path | None):
                 sigma_deg=sig)
 
 
+def _trust_sets(data: Path, num_textures: int):
+    """Yields (set name, name, gray (H, W) uint8, camera, GT axes (3, 3) rows or None)."""
+    from rectified_colmap import synth
+    from tests.conftest import look_at, plane_view, textured_image
+
+    K = np.array([[400.0, 0, 200], [0, 400, 150], [0, 0, 1]])
+    cam = make_camera("PINHOLE", [400.0, 400.0, 200.0, 150.0], 400, 300)
+    eyes = [[2.5, -4.0, 2.0], [-2.0, -4.0, 1.5], [0.5, -3.5, 3.5], [3.5, -1.0, 1.0]]
+    for seed in range(num_textures):  # tests/test_extract_cli geometry, more textures
+        tex = textured_image(600, 600, seed)
+        for i, eye in enumerate(eyes):
+            for mpt in (0.01, 0.02):
+                R, t = look_at(eye, [0, 0, 0])
+                yield "blob texture", f"{seed}/{i}/{mpt}", plane_view(tex, mpt, K, R, t,
+                                                                     (400, 300))[0], cam, None
+    camera = synth.pinhole_camera(480, 360, 0.9 * 480)
+    for seed in range(6):
+        rng = np.random.default_rng(100 + seed)
+        scene = synth.rubble(rng)
+        for j in range(2):
+            r = synth.render(scene, camera, synth.random_view(scene, rng, camera))
+            yield "rubble", f"{seed}/{j}", cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY), camera, None
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        tex = data / "textures" / "facades" if (data / "textures" / "facades").is_dir() \
+            else None
+        scene = synth.street(rng, texture_dir=tex)
+        target = ("facade", "ground")[seed % 2]
+        for j, pose in enumerate(synth.view_pair(scene, rng, 50, 90, target=target,
+                                                 camera=camera)[:2]):
+            r = synth.render(scene, camera, pose)
+            G = np.asarray(pose.rotation.matrix()).T.copy()
+            yield f"streets ({target})", f"{seed}/{j}", cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY), \
+                camera, G
+    for scene in sorted((data / "data" / "strecha-dev").glob("*/sparse")):
+        rec = pycolmap.Reconstruction(str(scene))
+        for im in sorted(rec.images.values(), key=lambda i: i.name):
+            gray = cv2.imread(str(scene.parent / "images" / im.name), cv2.IMREAD_GRAYSCALE)
+            yield "Strecha", f"{scene.parent.name}/{im.name}", gray, rec.cameras[im.camera_id], \
+                None
+    evd = data / "data" / "evd-dev"
+    if (evd / "pairs.json").exists():
+        for q in json.loads((evd / "pairs.json").read_text()):
+            for key in ("im0", "im1"):
+                gray = cv2.imread(str(evd / q[key]), cv2.IMREAD_GRAYSCALE)
+                h, w = gray.shape
+                f = 1.2 * max(w, h)  # the guess of scripts/eval_homography.py
+                yield "EVD", q[key], gray, make_camera("PINHOLE", [f, f, w / 2, h / 2], w, h), \
+                    None
+    for sub in ("yorkurban", "yorkurban-indoor"):
+        root = data / "data" / "real-pool" / sub
+        if not (root / "cameras.json").exists():
+            continue
+        gt = json.loads((root / "gt" / "gt_vps.json").read_text())["images"]
+        for name, c in sorted(json.loads((root / "cameras.json").read_text()).items()):
+            gray = cv2.imread(str(root / "images" / name), cv2.IMREAD_GRAYSCALE)
+            camera = make_camera("PINHOLE", [c["focal_px"], c["focal_px"], c["cx"], c["cy"]],
+                                 c["width"], c["height"])
+            g = gt.get(Path(name).stem)
+            G = None
+            if g is not None:  # columns = VPs, camera frame with y UP
+                V = g["vp_orthogonal"]
+                G = np.array(json.loads(V) if isinstance(V, str) else V).T * [1.0, -1.0, 1.0]
+            yield f"York Urban ({sub})", name, gray, camera, G
+
+
+def trust(data: Path, confs: dict[str, VpConf], num_textures: int = 30) -> str:
+    """Markdown table: per image set and conf, images with >= 1 / >= 2 trusted axes and the
+    error of the trusted axes to the GT (nearest GT axis; sets with GT only)."""
+    rows: dict[tuple[str, str], list] = {}
+    for set_name, _, gray, camera, G in _trust_sets(data, num_textures):
+        for cname, conf in confs.items():
+            mf = refine_directions(gray, camera, None, conf).manhattan
+            trusted = mf.sigma_deg <= conf.max_sigma_deg
+            err = []
+            if G is not None and mf.frame is not None and trusted.any():
+                G = G / np.linalg.norm(G, axis=1, keepdims=True)
+                err = np.degrees(np.arccos(np.clip(np.abs(mf.frame[trusted] @ G.T).max(1),
+                                                   0, 1))).tolist()
+            nfa = np.sort(mf.log10_nfa)[:2] if mf.frame is not None else np.full(2, np.inf)
+            rows.setdefault((set_name, cname), []).append((int(trusted.sum()), err, nfa))
+    out = ["| images | conf | n | >= 1 trusted axis | >= 2 | trusted axes / image | "
+           "GT error of trusted axes median / p90 / max (deg) | log10 NFA, first axis: min / "
+           "median / max | second axis: min / median / max |", "|---" * 9 + "|"]
+    for (set_name, cname), r in rows.items():
+        n = np.array([a for a, _, _ in r])
+        err = np.concatenate([e for _, e, _ in r]) if any(e for _, e, _ in r) else np.zeros(0)
+        e = " / ".join(f"{v:.2f}" for v in np.percentile(err, [50, 90, 100])) if len(err) \
+            else "-"
+        nfa = np.array([x for _, _, x in r])
+        q = [" / ".join(f"{v:.1f}" for v in np.percentile(nfa[:, i], [0, 50, 100]))
+             for i in range(2)]
+        out.append(f"| {set_name} | {cname} | {len(n)} | {(n >= 1).sum()} | {(n >= 2).sum()} | "
+                   f"{n.mean():.2f} | {e} | {q[0]} | {q[1]} |")
+    return "\n".join(out)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("strecha", type=Path)
     ap.add_argument("--viz", type=Path)
     ap.add_argument("--skip-synth", action="store_true")
+    ap.add_argument("--trust", action="store_true",
+                    help="only the trust table (section 4); data = the folder above "
+                         "strecha's (.../shared)")
+    ap.add_argument("--num_textures", type=int, default=30)
     args = ap.parse_args()
     cv2.setNumThreads(1)
     conf = VpConf()
+    if args.trust:
+        shared = args.strecha.resolve().parents[1]
+        print(trust(shared, {"no chance test": VpConf(max_log10_nfa=np.inf),
+                             "default": conf}, args.num_textures))
+        return
     if not args.skip_synth:
         for clutter in (0.3, 0.6):
             print(f"synthetic renders, clutter {clutter}:", synthetic(conf, clutter=clutter))
