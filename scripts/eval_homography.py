@@ -81,7 +81,9 @@ def extract_method(method: str, names: list[str], root: Path, cameras, normals, 
     if args.max_num_features:
         conf.sift.max_num_features = args.max_num_features
     source = None
-    if method == "rectsift" or (method in args.variants and base == "rectsift"):
+    if args.depth_model == "none":
+        pass  # no depth: plain SIFT, or lines only with vp.depth_free
+    elif method == "rectsift" or (method in args.variants and base == "rectsift"):
         from rectified_colmap.depth.registry import load_depth_source
         from rectified_colmap.extract import DEFAULT_DEPTH_MODEL
 
@@ -114,7 +116,9 @@ def main(argv=None) -> int:
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     p.add_argument("--variant", action="append", default=[], metavar="NAME=JSON",
                    help="an extra rectsift method with these conf overrides; repeatable")
-    p.add_argument("--depth_model", default=None, help="registry name or .onnx")
+    p.add_argument("--depth_model", default=None,
+                   help="registry name, .onnx, or none (no depth: plain SIFT, or lines "
+                        "only with vp.depth_free)")
     p.add_argument("--rect_conf", default=None, help="JSON conf overrides (rectsift, oracle)")
     p.add_argument("--max_num_features", type=int, default=None)
     p.add_argument("--focal_factor", type=float, default=1.2)
