@@ -319,3 +319,5 @@ DEFAULT_DEPTH_MODEL = "rectsift-lite0"
 """Depth network for images without a depth file (a name in rectified_colmap.depth.registry)."""
 DEFAULT_PNG_SCALE = 0.001
 """16-bit PNG depth files: depth = value x scale (millimetres)."""
+DEFAULT_CAMERA_MODEL = "SIMPLE_RADIAL"
+"""COLMAP camera model of new cameras made from EXIF (as COLMAP's feature_extractor)."""
