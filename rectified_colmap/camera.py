@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from .config import DEFAULT_CAMERA_MODEL
 from .conventions import pixel_centers
 
 logger = logging.getLogger(__name__)
@@ -103,7 +104,8 @@ def parse_camera_params(text: str) -> list[float]:
         raise ValueError(f"cannot parse camera params {text!r}: {e}") from None
 
 
-def infer_camera(image_path: Path, model: str = "SIMPLE_RADIAL") -> tuple[pycolmap.Camera, bool]:
+def infer_camera(image_path: Path, model: str = DEFAULT_CAMERA_MODEL
+                 ) -> tuple[pycolmap.Camera, bool]:
     """A camera from the image's EXIF as COLMAP does. Returns (camera, focal_is_prior).
 
     ``focal_is_prior`` is False when the focal length is COLMAP's guess (1.2 x max side).

@@ -47,7 +47,8 @@ import pycolmap
 from tqdm import tqdm
 
 from . import camera as cam_utils
-from .config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf
+from .config import (DEFAULT_CAMERA_MODEL, DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE,
+                     ExtractConf)
 from .features import Features
 from .io.images import ImageError, decode_image, image_size, list_images, read_image
 from .pipeline import ImageResult, extract_image
@@ -203,7 +204,7 @@ def _new_camera(path: Path, model: str | None, params: list[float] | None) -> _C
     if not path.is_file():
         raise ImageError("no such image file")
     try:
-        cam, has_prior = cam_utils.infer_camera(path, model or "SIMPLE_RADIAL")
+        cam, has_prior = cam_utils.infer_camera(path, model or DEFAULT_CAMERA_MODEL)
     except ValueError:
         raise ImageError("cannot decode image (corrupt or unsupported format)") from None
     return _Camera(cam, has_prior)

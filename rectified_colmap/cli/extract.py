@@ -11,7 +11,8 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf, confs
+    from ..config import (DEFAULT_CAMERA_MODEL, DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE,
+                          ExtractConf, confs)
 
     p = sub.add_parser(
         "extract", help="extract rectified SIFT into a COLMAP database and/or hloc HDF5",
@@ -36,7 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(`rectified-colmap models list`), a path to an .onnx, or 'none' "
                         "(default %(default)s)")
     p.add_argument("--camera_model", "--ImageReader.camera_model", dest="camera_model",
-                   help="COLMAP camera model for new cameras (default: SIMPLE_RADIAL from EXIF)")
+                   help="COLMAP camera model for new cameras (default: "
+                        f"{DEFAULT_CAMERA_MODEL} from EXIF)")
     p.add_argument("--camera_params", "--ImageReader.camera_params", dest="camera_params",
                    help="comma-separated params in COLMAP's order and pixel convention, e.g. "
                         "fx,fy,cx,cy for PINHOLE")
