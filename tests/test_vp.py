@@ -239,7 +239,7 @@ def test_manhattan_from_image_and_patch_check(tmp_path):
 
 def test_config_section_and_bad_input():
     conf = ExtractConf.from_dict({"vp": {"snap_angle_deg": 15}})
-    assert conf.vp.snap_angle_deg == 15.0 and conf.vp.enabled is False
+    assert conf.vp.snap_angle_deg == 15.0 and conf.vp.enabled is True
     with pytest.raises(ValueError, match="camera"):
         refine_directions(np.zeros((10, 10), np.uint8), cam(), np.eye(3))
     with pytest.raises(ValueError, match="uint8"):
