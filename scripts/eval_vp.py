@@ -43,6 +43,9 @@ method each, renamed) into one table by rotation bin (the real-photo part of doc
 
     python scripts/eval_vp.py --combine "plain SIFT=OUT_net/records.csv:sift" \
         "network=OUT_net/records.csv:rectsift" "network + VP=OUT_netvp/records.csv:rectsift"
+
+With ``--baseline LABEL`` it adds each other row paired against that one (per rotation bin:
+pairs solved only by either, McNemar p; more / fewer GT-correct, sign-test p).
 """
 
 from __future__ import annotations
@@ -367,8 +370,9 @@ def paired_lines(records: list[dict], rows: dict) -> str:
     return "Paired vs plain SIFT:\n\n" + "\n".join(lines) + "\n"
 
 
-def combine(specs: list[str], bin_deg: float = 10.0) -> str:
-    """'LABEL=records.csv:method' ... -> Markdown tables (rectified_colmap.eval.report)."""
+def combine(specs: list[str], bin_deg: float = 10.0, baseline: str | None = None) -> str:
+    """'LABEL=records.csv:method' ... -> Markdown tables (rectified_colmap.eval.report),
+    with ``baseline`` (a LABEL) also the other rows paired against it."""
     from rectified_colmap.eval import report as rep
 
     records = []
@@ -383,8 +387,11 @@ def combine(specs: list[str], bin_deg: float = 10.0) -> str:
             raise SystemExit(f"--combine {spec!r}: no records of method {method!r} in {path}")
         records += recs
     c = EvalConf(bin_deg=bin_deg)
-    return rep.markdown_table(records, c.bin_deg, c.auc_thresholds, c.success_deg,
+    text = rep.markdown_table(records, c.bin_deg, c.auc_thresholds, c.success_deg,
                               c.min_correct)
+    if baseline is not None:
+        text += "\n" + rep.paired_markdown(records, baseline, c.bin_deg)
+    return text
 
 
 def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
@@ -459,6 +466,8 @@ def main(argv=None) -> int:
     p.add_argument("--combine", nargs="+", metavar="LABEL=records.csv:method",
                    help="only merge eval_strecha records into one table (see above)")
     p.add_argument("--bin_deg", type=float, default=10.0, help="with --combine")
+    p.add_argument("--baseline", metavar="LABEL",
+                   help="with --combine: also pair every other row against this one")
     p.add_argument("--timing", nargs="+", type=Path, metavar="SCENE",
                    help="only time plain SIFT and the depth-free modes on Strecha scenes")
     p.add_argument("--num_images", type=int, default=3, help="with --timing, per scene")
@@ -469,7 +478,8 @@ def main(argv=None) -> int:
     if args.timing:
         text = timing(args.timing, args.num_images, args.max_num_features)
     else:
-        text = combine(args.combine, args.bin_deg) if args.combine else run(args)
+        text = combine(args.combine, args.bin_deg, args.baseline) if args.combine \
+            else run(args)
     print(text)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
