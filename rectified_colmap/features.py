@@ -226,6 +226,20 @@ def detect_sift(image: np.ndarray, conf: SiftConf = SiftConf(),
     return Features(xy, shapes, desc, np.full(len(m), -1, np.int32))
 
 
+def coarse_first_pays(shape: tuple[int, int], max_num_features: int,
+                      conf: SiftConf = SiftConf()) -> bool:
+    """Whether ``detect_sift`` should run ``coarse_first`` on an image of ``shape`` (h, w)
+    with this budget: ``conf.coarse_first`` and at least
+    ``conf.coarse_first_pixels_per_feature`` pixels per feature after SIFT's downscaling to
+    ``conf.max_image_size`` (there the coarser octaves fill the budget)."""
+    h, w = shape
+    if conf.max_image_size > 0 and max(h, w) > conf.max_image_size:
+        s = conf.max_image_size / max(h, w)
+        h, w = h * s, w * s
+    return bool(conf.coarse_first) and h * w >= conf.coarse_first_pixels_per_feature * max(
+        1, max_num_features)
+
+
 def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray:
     """Share a feature budget between regions in proportion to their areas (int array).
 

@@ -21,7 +21,8 @@ from . import camera as cam_utils
 from .config import ExtractConf
 from .dedup import fill_from_plain
 from .depth import DepthMap, resample_depth
-from .features import Features, detect_sift, keypoints_in_mask, split_budget
+from .features import (Features, coarse_first_pays, detect_sift, keypoints_in_mask,
+                       split_budget)
 from .normals import backproject, estimate_normals
 from .planes import PlaneResult, detect_planes
 from .rectify import (Rectification, plan_rectification, rectified_to_image,
@@ -114,6 +115,12 @@ def rectification_budgets(masks: np.ndarray, total: int, keep_plain: bool) -> np
     return split_budget(total, areas)
 
 
+def plain_sift(gray: np.ndarray, conf: ExtractConf) -> Features:
+    """Plain SIFT on the whole image with the whole budget (images without planes)."""
+    n = conf.sift.max_num_features
+    return detect_sift(gray, conf.sift, n, coarse_first=coarse_first_pays(gray.shape, n, conf.sift))
+
+
 def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: ExtractConf,
                    margin: int = 16) -> Features:
     """About ``budget`` plain SIFT features on the pixels of ``region`` (a grid covering the
@@ -127,8 +134,9 @@ def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: Extr
     y1 = min(H, int(np.ceil((rows[-1] + 1) * H / h)) + margin)
     box = region[int(y0 * h / H):int(np.ceil(y1 * h / H)), int(x0 * w / W):int(np.ceil(x1 * w / W))]
     n = round(budget * box.size / max(region.sum(), 1))  # SIFT's budget covers the whole box
-    feats = detect_sift(np.ascontiguousarray(gray[y0:y1, x0:x1]), conf.sift, n,
-                        coarse_first=conf.sift.coarse_first)
+    box_img = np.ascontiguousarray(gray[y0:y1, x0:x1])
+    feats = detect_sift(box_img, conf.sift, n,
+                        coarse_first=coarse_first_pays(box_img.shape, n, conf.sift))
     feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
 
@@ -225,7 +233,7 @@ def rectified_features(gray: np.ndarray, camera: pycolmap.Camera, rect: Rectific
     """SIFT inside one rectified patch, mapped back to the original image."""
     patch_img = warp_to_rectified(gray, camera, rect)
     feats = detect_sift(patch_img, conf.sift, budget, conf.sift.patch_first_octave,
-                        coarse_first=conf.sift.coarse_first)
+                        coarse_first=coarse_first_pays(patch_img.shape, budget, conf.sift))
     if len(feats) == 0:
         return feats
     b = conf.rectify.border
@@ -262,7 +270,7 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
 
     depth_free = depth is None and normals is None
     if depth_free and not conf.vp.depth_free:
-        return ImageResult(detect_sift(gray, conf.sift, total), timings=t)
+        return ImageResult(plain_sift(gray, conf), timings=t)
 
     if depth_free:  # planes from vanishing points alone (conf.vp.depth_free)
         from .vp import depth_free_planes
@@ -296,7 +304,7 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     t["homographies"] = time.perf_counter() - t0
     result = ImageResult(Features.empty(), planes, rects, cover, normals, t)
     if not rects or not (cover >= 0).any():
-        result.features = detect_sift(gray, conf.sift, total)
+        result.features = plain_sift(gray, conf)
         return result
 
     budgets = rectification_budgets(masks, total, conf.rectify.keep_plain)

@@ -154,7 +154,8 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="1536x1024", help="synthetic image size WxH")
     p.add_argument("--conf", default="rectsift", choices=sorted(confs))
     p.add_argument("--coarse_first", action="store_true",
-                   help="coarse_first SIFT in the parts of rectified SIFT (see features.py)")
+                   help="coarse_first SIFT in every part of rectified SIFT, whatever the image "
+                        "size (default: sift.coarse_first where it pays, see config.py)")
     p.add_argument("--exact_sift", action="store_true",
                    help="exact COLMAP calls in every part (sift.coarse_first off)")
     p.add_argument("--retain_memory", action="store_true",
@@ -177,6 +178,8 @@ def main(argv=None) -> int:
         p.error("--coarse_first or --exact_sift, not both")
     if args.coarse_first or args.exact_sift:
         conf.sift.coarse_first = args.coarse_first
+    if args.coarse_first:
+        conf.sift.coarse_first_pixels_per_feature = 0.0
     if args.patch_first_octave is not None:
         conf.sift.patch_first_octave = args.patch_first_octave
 
@@ -190,7 +193,8 @@ def main(argv=None) -> int:
 
     print(f"# clock: {args.clock}; load average at start: {os.getloadavg()[0]:.2f}; "
           f"RSS {memory_mb():.0f} MB; "
-          f"coarse_first={getattr(conf.sift, 'coarse_first', args.coarse_first)}; "
+          f"coarse_first={conf.sift.coarse_first} "
+          f"(>= {conf.sift.coarse_first_pixels_per_feature:g} px/feature); "
           f"retain_memory={args.retain_memory}; "
           f"patch_first_octave={conf.sift.patch_first_octave}")
     rows = []

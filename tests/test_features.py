@@ -3,8 +3,9 @@ import pycolmap
 import pytest
 
 from rectified_colmap.config import SiftConf
-from rectified_colmap.features import (Features, count_detections, detect_sift,
-                                       keypoints_in_mask, similarity_frames, split_budget)
+from rectified_colmap.features import (Features, coarse_first_pays, count_detections,
+                                       detect_sift, keypoints_in_mask, similarity_frames,
+                                       split_budget)
 from tests.conftest import textured_image
 
 
@@ -135,6 +136,44 @@ def test_coarse_first_finds_about_the_points_of_one_call(n):
     f = detect_sift(img, SiftConf(), n, coarse_first=True)
     assert abs(len(f) - len(ref)) < 0.15 * len(ref)
     assert _agreement(f, ref) > 0.8 and _agreement(ref, f) > 0.8
+
+
+def test_coarse_first_pays_from_pixels_per_feature_after_downscaling():
+    conf = SiftConf(coarse_first_pixels_per_feature=500.0, max_image_size=3200)
+    assert coarse_first_pays((2048, 3072), 8192, conf)  # 6.3 MP >= 4.1 MP
+    assert not coarse_first_pays((1024, 1536), 8192, conf)  # 1.6 MP
+    assert coarse_first_pays((1024, 1536), 1024, conf)
+    assert coarse_first_pays((1024, 1000), 1024, conf) == (1024 * 1000 >= 500 * 1024)
+    # 12000 x 8000 is seen by SIFT at 3200 x 2133 (6.8 MP): pays up to 13653 features
+    assert coarse_first_pays((8000, 12000), 13600, conf)
+    assert not coarse_first_pays((8000, 12000), 13700, conf)
+    conf.coarse_first = False
+    assert not coarse_first_pays((2048, 3072), 8192, conf)
+
+
+def test_plain_path_uses_coarse_first_only_where_it_pays():
+    """An image without planes: coarse-first SIFT where the coarser octaves fill the budget,
+    else (or with sift.coarse_first off) exactly one COLMAP call."""
+    from rectified_colmap import camera as cam_utils
+    from rectified_colmap.config import ExtractConf
+    from rectified_colmap.pipeline import extract_image
+
+    img = textured_image(300, 400, 7)
+    camera = cam_utils.make_camera("PINHOLE", [400, 400, 200, 150], 400, 300)
+    conf = ExtractConf()
+    for n, pays in ((150, True), (2000, False)):
+        conf.sift.max_num_features = n
+        assert coarse_first_pays(img.shape, n, conf.sift) == pays
+        out = extract_image(img, camera, None, conf).features
+        ref = detect_sift(img, conf.sift, n, coarse_first=pays)
+        np.testing.assert_array_equal(out.keypoints, ref.keypoints)
+        if pays:  # not the exact call's output
+            exact = detect_sift(img, conf.sift, n)
+            assert len(exact) != len(out) or not np.array_equal(exact.keypoints, out.keypoints)
+    conf.sift.coarse_first = False
+    conf.sift.max_num_features = 150
+    out = extract_image(img, camera, None, conf).features
+    np.testing.assert_array_equal(out.keypoints, detect_sift(img, conf.sift, 150).keypoints)
 
 
 def test_count_detections_counts_points_not_orientations():
