@@ -91,10 +91,9 @@ def test_extract_rectifies_with_depth_and_is_plain_without(scene, tmp_path):
         p = hloc_h5.read(tmp_path / "p.h5", name)
         np.testing.assert_allclose(p["keypoints"], plain.keypoints, atol=1e-3)
         r = hloc_h5.read(tmp_path / "r.h5", name)
-        # rectified keypoints: many are not where plain SIFT put one (13-15% of these small
-        # renders at patch_first_octave 0, where the patches find fewer small points)
+        # rectified keypoints: most are not where plain SIFT put one
         d = np.linalg.norm(r["keypoints"][:, None] - p["keypoints"][None], axis=2).min(1)
-        assert (d > 0.5).sum() > 0.1 * len(r["keypoints"])
+        assert (d > 0.5).sum() > 0.3 * len(r["keypoints"])
 
 
 def test_single_camera_and_workers(scene, tmp_path):

@@ -118,7 +118,6 @@ def test_keep_plain_shares_the_budget_on_planes(texture):
     img, z = plane_view(texture, 0.01, K, R0, t0, SIZE)
     conf = ExtractConf()
     conf.sift.max_num_features = 2000
-    conf.sift.patch_first_octave = -1  # at 0 this small patch runs out of points first
     assert conf.rectify.keep_plain
     f = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
     plain, rect = (f.patch < 0).sum(), (f.patch >= 0).sum()
