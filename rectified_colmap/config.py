@@ -112,9 +112,10 @@ class SiftConf:
     upright: bool = False
     max_image_size: int = 3200
     """Images larger than this are downscaled for SIFT (COLMAP's default)."""
-    patch_first_octave: int = 0
-    """first_octave inside rectified patches. They are already enlarged so that nothing
-    shrinks: 0 costs ~4x less than COLMAP's -1 there, with the same matches on Strecha
+    patch_first_octave: int = -1
+    """first_octave inside rectified patches. 0 costs ~4x less there and gave the same
+    matches on Strecha (1536x1024), but a third fewer correct matches on 480x360 renders;
+    with -1, ``coarse_first`` already skips the upsampled octave in large patches
     (docs/benchmarks.md)."""
     coarse_first: bool = True
     """Where an image has at least ``coarse_first_pixels_per_feature`` pixels per budgeted
