@@ -30,7 +30,7 @@ def is_pinhole(camera: pycolmap.Camera) -> bool:
     """True when the camera has no distortion terms (or all of them are zero)."""
     if model_name(camera) in PINHOLE_MODELS:
         return True
-    extra = np.asarray(camera.params)[len(_focal_and_pp(camera)):]
+    extra = np.asarray(camera.params)[len(_focal_and_pp(camera)) :]
     return bool(np.all(extra == 0))
 
 
@@ -77,20 +77,24 @@ def num_params(model: str) -> int:
     try:
         return len(pycolmap.Camera.create_from_model_name(1, model, 1.0, 1, 1).params)
     except Exception:
-        known = ", ".join(m.name for m in pycolmap.CameraModelId.__members__.values()
-                          if m.name != "INVALID")
+        known = ", ".join(
+            m.name for m in pycolmap.CameraModelId.__members__.values() if m.name != "INVALID"
+        )
         raise ValueError(f"unknown camera model {model!r}; COLMAP's are {known}") from None
 
 
-def make_camera(model: str, params: list[float] | np.ndarray, width: int, height: int
-                ) -> pycolmap.Camera:
+def make_camera(
+    model: str, params: list[float] | np.ndarray, width: int, height: int
+) -> pycolmap.Camera:
     """A camera from COLMAP's model name and parameter list (COLMAP order and convention)."""
     expected = num_params(model)
     if len(params) != expected:
-        raise ValueError(f"camera model {model} takes {expected} params, got {len(params)}: "
-                         f"{list(params)}")
-    cam = pycolmap.Camera(model=model, width=int(width), height=int(height),
-                          params=[float(p) for p in params])
+        raise ValueError(
+            f"camera model {model} takes {expected} params, got {len(params)}: {list(params)}"
+        )
+    cam = pycolmap.Camera(
+        model=model, width=int(width), height=int(height), params=[float(p) for p in params]
+    )
     if not cam.verify_params() or not np.isfinite(cam.params).all():
         raise ValueError(f"camera model {model}: invalid params {list(params)}")
     return cam
@@ -104,8 +108,9 @@ def parse_camera_params(text: str) -> list[float]:
         raise ValueError(f"cannot parse camera params {text!r}: {e}") from None
 
 
-def infer_camera(image_path: Path, model: str = DEFAULT_CAMERA_MODEL
-                 ) -> tuple[pycolmap.Camera, bool]:
+def infer_camera(
+    image_path: Path, model: str = DEFAULT_CAMERA_MODEL
+) -> tuple[pycolmap.Camera, bool]:
     """A camera from the image's EXIF as COLMAP does. Returns (camera, focal_is_prior).
 
     ``focal_is_prior`` is False when the focal length is COLMAP's guess (1.2 x max side).
@@ -115,8 +120,13 @@ def infer_camera(image_path: Path, model: str = DEFAULT_CAMERA_MODEL
         raise ValueError(f"{image_path}: cannot read image to infer its camera")
     if model != model_name(cam):
         f = cam.mean_focal_length()
-        cam = make_camera(model, _default_params(model, f, cam.width, cam.height),
-                          cam.width, cam.height) if model else cam
+        cam = (
+            make_camera(
+                model, _default_params(model, f, cam.width, cam.height), cam.width, cam.height
+            )
+            if model
+            else cam
+        )
     has_prior = bool(getattr(cam, "has_prior_focal_length", False))
     return cam, has_prior
 

@@ -218,8 +218,9 @@ class VpConf:
 
     def __post_init__(self):
         if self.depth_free_regions not in ("lines", "whole"):
-            raise ValueError("vp.depth_free_regions must be 'lines' or 'whole', got "
-                             f"{self.depth_free_regions!r}")
+            raise ValueError(
+                f"vp.depth_free_regions must be 'lines' or 'whole', got {self.depth_free_regions!r}"
+            )
 
 
 @dataclass
@@ -262,6 +263,7 @@ confs: dict[str, dict[str, Any]] = {
 
 
 # -- evaluation and localization (rectified_colmap.eval) ----------------------------------
+
 
 @dataclass
 class EvalConf:

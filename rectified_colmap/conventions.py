@@ -20,8 +20,9 @@ _T = np.array([[1.0, 0.0, OFFSET], [0.0, 1.0, OFFSET], [0.0, 0.0, 1.0]])
 _T_INV = np.array([[1.0, 0.0, -OFFSET], [0.0, 1.0, -OFFSET], [0.0, 0.0, 1.0]])
 
 
-def pixel_centers(width: int, height: int, image_width: int | None = None,
-                  image_height: int | None = None) -> np.ndarray:
+def pixel_centers(
+    width: int, height: int, image_width: int | None = None, image_height: int | None = None
+) -> np.ndarray:
     """COLMAP coordinates of the centres of a ``width x height`` grid of cells.
 
     When the grid is a resampling of an image of size ``image_width x image_height``, the

@@ -97,8 +97,9 @@ def cosine_pairs(desc: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", d[a], d[b]) / (norm[a] * norm[b])
 
 
-def duplicate_pairs(feats: Features, conf: DedupConf = DedupConf(),
-                    only_across: bool | None = None) -> np.ndarray:
+def duplicate_pairs(
+    feats: Features, conf: DedupConf = DedupConf(), only_across: bool | None = None
+) -> np.ndarray:
     """(P, 2) index pairs of near-duplicates: closer than ``conf.radius_px``, descriptor
     cosine above ``conf.min_cosine`` and scales (square root of |det A|) within a factor
     ``conf.max_scale_ratio``. With ``only_across`` (default conf.only_across) a pair must
@@ -133,8 +134,9 @@ def keep_preference(feats: Features, conf: DedupConf = DedupConf()) -> np.ndarra
     return pref
 
 
-def near_duplicate_mask(feats: Features, conf: DedupConf = DedupConf(),
-                        only_across: bool | None = None) -> np.ndarray:
+def near_duplicate_mask(
+    feats: Features, conf: DedupConf = DedupConf(), only_across: bool | None = None
+) -> np.ndarray:
     """(N,) bool: True for the features to keep. Of each near-duplicate pair the one with
     the lower ``keep_preference`` is dropped (ties: the later index). A feature dropped for
     one pair is dropped even if it would have won another (chains resolve conservatively)."""
@@ -149,8 +151,7 @@ def near_duplicate_mask(feats: Features, conf: DedupConf = DedupConf(),
     return keep
 
 
-def duplicate_fraction(feats: Features, radius: float = 1.0, min_cosine: float = 0.9
-                       ) -> float:
+def duplicate_fraction(feats: Features, radius: float = 1.0, min_cosine: float = 0.9) -> float:
     """Fraction of keypoints with a twin closer than ``radius`` px whose descriptor cosine
     exceeds ``min_cosine`` (any source, any scale): the measure of
     shared/tools/near_duplicates.py."""
@@ -163,8 +164,9 @@ def duplicate_fraction(feats: Features, radius: float = 1.0, min_cosine: float =
     return float(twin.mean())
 
 
-def fill_from_plain(rectified: Features, plain: Features, target: int,
-                    conf: DedupConf = DedupConf()) -> Features:
+def fill_from_plain(
+    rectified: Features, plain: Features, target: int, conf: DedupConf = DedupConf()
+) -> Features:
     """Rectified features plus plain ones, without near-duplicates, at most ``target``.
 
     rectified: the features of all patches (patch >= 0), mapped back; plain: plain SIFT

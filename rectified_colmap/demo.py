@@ -24,8 +24,9 @@ from .geometry import rotation_angle_deg
 logger = logging.getLogger(__name__)
 
 
-def render_walk(out_dir: Path, num_images: int = 8, width: int = 640, height: int = 480,
-                seed: int = 0) -> tuple[list[str], pycolmap.Camera, dict[str, pycolmap.Rigid3d]]:
+def render_walk(
+    out_dir: Path, num_images: int = 8, width: int = 640, height: int = 480, seed: int = 0
+) -> tuple[list[str], pycolmap.Camera, dict[str, pycolmap.Rigid3d]]:
     """Write a walk along a street to out_dir; returns (names, camera, cam_from_world)."""
     rng = np.random.default_rng(seed)
     scene = synth.street(rng)
@@ -41,8 +42,13 @@ def render_walk(out_dir: Path, num_images: int = 8, width: int = 640, height: in
     return names, camera, poses
 
 
-def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH_MODEL,
-             overwrite: bool = False, num_workers: int = 1) -> dict:
+def run_demo(
+    output: Path,
+    num_images: int = 8,
+    depth_model: str = DEFAULT_DEPTH_MODEL,
+    overwrite: bool = False,
+    num_workers: int = 1,
+) -> dict:
     output = Path(output)
     if overwrite and output.exists():
         shutil.rmtree(output)
@@ -51,9 +57,17 @@ def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH
     names, camera, gt = render_walk(images, num_images)
     params = ",".join(f"{p:.6f}" for p in camera.params)
     db, h5 = output / "database.db", output / "features.h5"
-    summary = extract(images, database=db, hloc_features=h5, depth_model=depth_model,
-                      camera_model="PINHOLE", camera_params=params, single_camera=True,
-                      num_workers=num_workers, visualize=output / "viz")
+    summary = extract(
+        images,
+        database=db,
+        hloc_features=h5,
+        depth_model=depth_model,
+        camera_model="PINHOLE",
+        camera_params=params,
+        single_camera=True,
+        num_workers=num_workers,
+        visualize=output / "viz",
+    )
     logger.info("extraction\n%s", summary.report())
     pycolmap.match_exhaustive(db)
     opts = pycolmap.IncrementalPipelineOptions()
@@ -61,9 +75,14 @@ def run_demo(output: Path, num_images: int = 8, depth_model: str = DEFAULT_DEPTH
     opts.ba_refine_focal_length = False  # the renderer's intrinsics are exact
     opts.ba_refine_extra_params = False
     recs = pycolmap.incremental_mapping(db, images, output / "sparse", opts)
-    result = {"images": len(names), "registered": 0, "points3D": 0, "max_rot_err_deg": None,
-              "extraction_ok": summary.ok, "rectified_images": len(summary.done)
-              - len(summary.plain)}
+    result = {
+        "images": len(names),
+        "registered": 0,
+        "points3D": 0,
+        "max_rot_err_deg": None,
+        "extraction_ok": summary.ok,
+        "rectified_images": len(summary.done) - len(summary.plain),
+    }
     if recs:
         best = max(recs.values(), key=lambda r: r.num_reg_images())
         result["registered"] = best.num_reg_images()

@@ -28,12 +28,13 @@ logger = logging.getLogger(__name__)
 
 
 def parse_shard(shard: str | tuple[int, int]) -> tuple[int, int]:
-    """"i/n" or (i, n) -> (i, n) with 0 <= i < n; ValueError with the accepted form."""
+    """ "i/n" or (i, n) -> (i, n) with 0 <= i < n; ValueError with the accepted form."""
     if isinstance(shard, str):
         m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", shard)
         if m is None:
-            raise ValueError(f"--shard {shard!r}: expected INDEX/COUNT, e.g. 0/8 "
-                             "(INDEX from 0 to COUNT-1)")
+            raise ValueError(
+                f"--shard {shard!r}: expected INDEX/COUNT, e.g. 0/8 (INDEX from 0 to COUNT-1)"
+            )
         shard = (int(m.group(1)), int(m.group(2)))
     index, count = (int(v) for v in shard)
     if count < 1 or not 0 <= index < count:
@@ -55,8 +56,9 @@ def _import_ray():
     try:
         import ray
     except ImportError:
-        raise RuntimeError("--ray needs Ray, which is not installed: "
-                           "pip install 'rectified-colmap[ray]'") from None
+        raise RuntimeError(
+            "--ray needs Ray, which is not installed: pip install 'rectified-colmap[ray]'"
+        ) from None
     return ray
 
 
@@ -85,8 +87,10 @@ class RayRunner:
             try:
                 ray.init(**kwargs)
             except Exception as e:
-                raise RuntimeError(f"--ray {self.address or 'local'}: cannot start or reach "
-                                   f"Ray ({type(e).__name__}: {e})") from None
+                raise RuntimeError(
+                    f"--ray {self.address or 'local'}: cannot start or reach "
+                    f"Ray ({type(e).__name__}: {e})"
+                ) from None
             self._started = True
         cpus = int(ray.cluster_resources().get("CPU", 1))
         return max(1, self.num_workers if self.num_workers > 1 else cpus)

@@ -47,8 +47,7 @@ import pycolmap
 from tqdm import tqdm
 
 from . import camera as cam_utils
-from .config import (DEFAULT_CAMERA_MODEL, DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE,
-                     ExtractConf)
+from .config import DEFAULT_CAMERA_MODEL, DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf
 from .features import Features
 from .io.images import ImageError, decode_image, image_size, list_images, read_image
 from .pipeline import ImageResult, extract_image
@@ -88,19 +87,26 @@ class Summary:
 
     def report(self) -> str:
         n = len(self.done)
-        lines = [f"images: {n} extracted, {len(self.copied)} copied between outputs, "
-                 f"{len(self.skipped)} skipped (already had features), "
-                 f"{len(self.failed)} failed",
-                 f"keypoints: {self.num_keypoints} ({self.num_keypoints / max(n, 1):.0f} per "
-                 f"image); {len(self.plain)} image(s) with plain SIFT only",
-                 f"time: {self.seconds:.1f} s ({self.seconds / max(n, 1):.2f} s per image, "
-                 f"{n / self.work_seconds if self.work_seconds > 0 else 0:.2f} images/s "
-                 "while extracting)"]
-        lines += [f"kept {k} image(s) with features from another extractor in {path}"
-                  for path, k in self.foreign.items() if k]
+        lines = [
+            f"images: {n} extracted, {len(self.copied)} copied between outputs, "
+            f"{len(self.skipped)} skipped (already had features), "
+            f"{len(self.failed)} failed",
+            f"keypoints: {self.num_keypoints} ({self.num_keypoints / max(n, 1):.0f} per "
+            f"image); {len(self.plain)} image(s) with plain SIFT only",
+            f"time: {self.seconds:.1f} s ({self.seconds / max(n, 1):.2f} s per image, "
+            f"{n / self.work_seconds if self.work_seconds > 0 else 0:.2f} images/s "
+            "while extracting)",
+        ]
+        lines += [
+            f"kept {k} image(s) with features from another extractor in {path}"
+            for path, k in self.foreign.items()
+            if k
+        ]
         if any(self.deleted_matches):
-            lines.append(f"deleted {self.deleted_matches[0]} match and "
-                         f"{self.deleted_matches[1]} two-view geometry rows (--overwrite)")
+            lines.append(
+                f"deleted {self.deleted_matches[0]} match and "
+                f"{self.deleted_matches[1]} two-view geometry rows (--overwrite)"
+            )
         lines += [f"WARNING {name}: {w}" for name, ws in self.warnings.items() for w in ws]
         lines += [f"FAILED {name}: {why}" for name, why in self.failed.items()]
         return "\n".join(lines)
@@ -140,19 +146,22 @@ def _depth_sources(depth_path, depth_kind, png_scale, depth_model, model_threads
     return sources
 
 
-def _init_worker(depth_path, depth_kind, png_scale, depth_model, model_threads,
-                 sources: dict | None = None):
+def _init_worker(
+    depth_path, depth_kind, png_scale, depth_model, model_threads, sources: dict | None = None
+):
     cv2.setNumThreads(1)
     quiet_pycolmap()
     _WORKER.clear()
-    _WORKER.update(sources if sources is not None else
-                   _depth_sources(depth_path, depth_kind, png_scale, depth_model,
-                                  model_threads))
+    _WORKER.update(
+        sources
+        if sources is not None
+        else _depth_sources(depth_path, depth_kind, png_scale, depth_model, model_threads)
+    )
 
 
-def _process(name: str, path: Path, camera: pycolmap.Camera, conf: ExtractConf,
-             keep_details: bool
-             ) -> tuple[str, ImageResult | None, str, str | None, list[str]]:
+def _process(
+    name: str, path: Path, camera: pycolmap.Camera, conf: ExtractConf, keep_details: bool
+) -> tuple[str, ImageResult | None, str, str | None, list[str]]:
     """-> (name, result, depth origin, error message, warnings); messages without the
     image's name (the caller adds it)."""
     warnings: list[str] = []
@@ -160,8 +169,7 @@ def _process(name: str, path: Path, camera: pycolmap.Camera, conf: ExtractConf,
         rgb, warnings = decode_image(path)
         H, W = rgb.shape[:2]
         if (W, H) != (camera.width, camera.height):
-            raise ImageError(f"image is {W}x{H} but its camera is "
-                             f"{camera.width}x{camera.height}")
+            raise ImageError(f"image is {W}x{H} but its camera is {camera.width}x{camera.height}")
         depth, origin = None, "none"
         for kind in ("files", "network"):
             source = _WORKER.get(kind)
@@ -192,6 +200,7 @@ def _process(name: str, path: Path, camera: pycolmap.Camera, conf: ExtractConf,
 class _Camera:
     """A camera of the run; ``camera_id`` stays None until its first image is written
     (the camera row goes into that image's transaction: no orphan camera rows)."""
+
     camera: pycolmap.Camera
     prior: bool
     camera_id: int | None = None
@@ -223,15 +232,26 @@ def _check_camera_args(camera_model: str | None, camera_params) -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def extract(image_dir: Path, database: Path | None = None, hloc_features: Path | None = None,
-            image_list: Path | list[str] | None = None, depth_path: Path | None = None,
-            depth_kind: str = "depth", png_scale: float = DEFAULT_PNG_SCALE,
-            depth_model: str | None = DEFAULT_DEPTH_MODEL,
-            camera_model: str | None = None, camera_params: list[float] | str | None = None,
-            single_camera: bool = False, conf: ExtractConf | dict | None = None,
-            num_workers: int = 1, overwrite: bool = False, visualize: Path | None = None,
-            progress: bool = True, shard: str | tuple[int, int] | None = None,
-            ray_address: str | None = None) -> Summary:
+def extract(
+    image_dir: Path,
+    database: Path | None = None,
+    hloc_features: Path | None = None,
+    image_list: Path | list[str] | None = None,
+    depth_path: Path | None = None,
+    depth_kind: str = "depth",
+    png_scale: float = DEFAULT_PNG_SCALE,
+    depth_model: str | None = DEFAULT_DEPTH_MODEL,
+    camera_model: str | None = None,
+    camera_params: list[float] | str | None = None,
+    single_camera: bool = False,
+    conf: ExtractConf | dict | None = None,
+    num_workers: int = 1,
+    overwrite: bool = False,
+    visualize: Path | None = None,
+    progress: bool = True,
+    shard: str | tuple[int, int] | None = None,
+    ray_address: str | None = None,
+) -> Summary:
     """Extract rectified SIFT for a folder of images; see the module docstring.
 
     ``shard`` ("i/n" or (i, n)): only this job's share of the images
@@ -259,8 +279,9 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
     summary = Summary()
     t_start = time.perf_counter()
     if depth_path is None and depth_model in (None, "none") and not conf.vp.depth_free:
-        logger.warning("no depth source (no --depth_path, --depth_model none): every image "
-                       "gets plain SIFT")
+        logger.warning(
+            "no depth source (no --depth_path, --depth_model none): every image gets plain SIFT"
+        )
 
     from .io.colmap_db import ColmapDatabase
     from .io.hloc_h5 import HlocFeatureWriter
@@ -270,8 +291,13 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
         if path is not None:
             check_writable(path, what)
     parallel = num_workers > 1 or ray_address is not None
-    init = (None if depth_path is None else Path(depth_path).absolute(), depth_kind,
-            png_scale, depth_model, 1 if parallel else None)
+    init = (
+        None if depth_path is None else Path(depth_path).absolute(),
+        depth_kind,
+        png_scale,
+        depth_model,
+        1 if parallel else None,
+    )
     sources = _depth_sources(*init)  # fails here, before any output is touched
     if ray_address is not None:
         from .distributed import RayRunner
@@ -288,8 +314,9 @@ def extract(image_dir: Path, database: Path | None = None, hloc_features: Path |
     try:
         h5 = HlocFeatureWriter(hloc_features) if hloc_features is not None else None
         db = ColmapDatabase(database) if database is not None else None
-        todo = _plan(names, image_dir, db, h5, camera_model, camera_params, single_camera,
-                     overwrite, summary)
+        todo = _plan(
+            names, image_dir, db, h5, camera_model, camera_params, single_camera, overwrite, summary
+        )
         jobs = [(n, image_dir.absolute() / n, c.camera) for n, c in todo.items()]
         bar = tqdm(total=len(todo), desc="rectified SIFT", unit="img", disable=not progress)
         store = _Store(db, h5, todo, summary, overwrite, visualize, image_dir)
@@ -316,15 +343,18 @@ Job = tuple  # (name, absolute image path, pycolmap.Camera)
 
 def _here_runner(init: tuple, sources: dict):
     """Runs the jobs in this process; yields _process results in job order."""
+
     def run(jobs: list[Job], conf: ExtractConf, keep: bool):
         _init_worker(*init, sources=sources)
         for name, path, camera in jobs:
             yield _process(name, path, camera, conf, keep)
+
     return run
 
 
 def _pool_runner(num_workers: int, init: tuple):
     """Runs the jobs in ``num_workers`` local processes; yields results in job order."""
+
     def run(jobs: list[Job], conf: ExtractConf, keep: bool):
         if len(jobs) <= 1:
             yield from _here_runner(init, None)(jobs, conf, keep)
@@ -334,11 +364,21 @@ def _pool_runner(num_workers: int, init: tuple):
             futures = [ex.submit(_process, n, p, c, conf, keep) for n, p, c in jobs]
             for fut in futures:
                 yield fut.result()
+
     return run
 
 
-def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params,
-          single_camera: bool, overwrite: bool, summary: Summary) -> dict[str, _Camera]:
+def _plan(
+    names: list[str],
+    image_dir: Path,
+    db,
+    h5,
+    camera_model,
+    camera_params,
+    single_camera: bool,
+    overwrite: bool,
+    summary: Summary,
+) -> dict[str, _Camera]:
     """Decide per image: skip, copy between outputs (done here), or extract.
 
     Returns the images to extract with their cameras."""
@@ -374,8 +414,12 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
                     continue
                 if in_db:  # the hloc file lacks it: the database's features, as they are
                     cam = cameras[found[1]].camera
-                    h5.write(name, db.read_features(found[0]), (cam.width, cam.height),
-                             extractor=hloc_h5.EXTRACTOR_NAME if found[0] in ours else None)
+                    h5.write(
+                        name,
+                        db.read_features(found[0]),
+                        (cam.width, cam.height),
+                        extractor=hloc_h5.EXTRACTOR_NAME if found[0] in ours else None,
+                    )
                     summary.copied[name] = "database -> hloc"
                     continue
             elif in_db:
@@ -386,8 +430,10 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
                 camera = shared
                 w, h = image_size(path)
                 if (w, h) != (camera.camera.width, camera.camera.height):
-                    raise ImageError(f"{w}x{h} differs from the single camera's "
-                                     f"{camera.camera.width}x{camera.camera.height}")
+                    raise ImageError(
+                        f"{w}x{h} differs from the single camera's "
+                        f"{camera.camera.width}x{camera.camera.height}"
+                    )
             else:
                 camera = _new_camera(path, camera_model, camera_params)
                 if not camera.prior:
@@ -399,46 +445,68 @@ def _plan(names: list[str], image_dir: Path, db, h5, camera_model, camera_params
                 feats = hloc_h5.features_from_arrays(arrays, f"{h5.path}: {name!r}")
                 size = tuple(int(v) for v in arrays["image_size"])
                 if size != (camera.camera.width, camera.camera.height):
-                    raise ImageError(f"{h5.path} says the image is {size[0]}x{size[1]}, "
-                                     f"its camera is {camera.camera.width}x"
-                                     f"{camera.camera.height}")
+                    raise ImageError(
+                        f"{h5.path} says the image is {size[0]}x{size[1]}, "
+                        f"its camera is {camera.camera.width}x"
+                        f"{camera.camera.height}"
+                    )
                 _, camera.camera_id, _ = db.write_image(
-                    name, feats, camera.camera, camera.prior, camera.camera_id,
-                    extractor=None if name in foreign_h5 else hloc_h5.EXTRACTOR_NAME)
+                    name,
+                    feats,
+                    camera.camera,
+                    camera.prior,
+                    camera.camera_id,
+                    extractor=None if name in foreign_h5 else hloc_h5.EXTRACTOR_NAME,
+                )
                 summary.copied[name] = "hloc -> database"
                 continue
             todo[name] = camera
         except Exception as e:
             logger.debug("planning %s", name, exc_info=True)
-            summary.failed[name] = str(e) if isinstance(e, ImageError) else \
-                f"{type(e).__name__}: {e}"
+            summary.failed[name] = (
+                str(e) if isinstance(e, ImageError) else f"{type(e).__name__}: {e}"
+            )
             logger.error("%s: %s", name, summary.failed[name])
     if guessed:
-        logger.warning("%d image(s) have no focal length in EXIF (%s%s): guessing 1.2 x the "
-                       "larger side, as COLMAP does. Pass --camera_model/--camera_params "
-                       "for better planes.", len(guessed), ", ".join(guessed[:3]),
-                       ", ..." if len(guessed) > 3 else "")
+        logger.warning(
+            "%d image(s) have no focal length in EXIF (%s%s): guessing 1.2 x the "
+            "larger side, as COLMAP does. Pass --camera_model/--camera_params "
+            "for better planes.",
+            len(guessed),
+            ", ".join(guessed[:3]),
+            ", ..." if len(guessed) > 3 else "",
+        )
     for output, found in ((db, foreign_db), (h5, foreign_in_h5)):
         if found:
             summary.foreign[str(output.path)] = len(found)
             if not overwrite:
-                logger.warning("%s: %d image(s) have features from another extractor (%s%s); "
-                               "kept as they are (--overwrite replaces them)", output.path,
-                               len(found), ", ".join(found[:3]),
-                               ", ..." if len(found) > 3 else "")
+                logger.warning(
+                    "%s: %d image(s) have features from another extractor (%s%s); "
+                    "kept as they are (--overwrite replaces them)",
+                    output.path,
+                    len(found),
+                    ", ".join(found[:3]),
+                    ", ..." if len(found) > 3 else "",
+                )
     if replaced:
         n_matches, n_geoms = db.count_matches(replaced)
         summary.deleted_matches = (n_matches, n_geoms)
         if n_matches or n_geoms:
-            logger.warning("--overwrite: re-extracting %d image(s) of %s deletes %d match and "
-                           "%d two-view geometry rows that refer to their old keypoints",
-                           len(replaced), db.path, n_matches, n_geoms)
+            logger.warning(
+                "--overwrite: re-extracting %d image(s) of %s deletes %d match and "
+                "%d two-view geometry rows that refer to their old keypoints",
+                len(replaced),
+                db.path,
+                n_matches,
+                n_geoms,
+            )
     return todo
 
 
 def _stored_precision(feats: Features) -> Features:
     """Keypoints and frames rounded to the float32 that a database stores, so that both
     outputs, and copies between them, hold bit-identical values however they were made."""
+
     def f32(a):
         return np.asarray(a, dtype=np.float32).astype(np.float64)
 
@@ -448,8 +516,16 @@ def _stored_precision(feats: Features) -> Features:
 class _Store:
     """Writes one worker result into the outputs (main process)."""
 
-    def __init__(self, db, h5, cameras: dict[str, _Camera], summary: Summary,
-                 overwrite: bool, visualize: Path | None, image_dir: Path):
+    def __init__(
+        self,
+        db,
+        h5,
+        cameras: dict[str, _Camera],
+        summary: Summary,
+        overwrite: bool,
+        visualize: Path | None,
+        image_dir: Path,
+    ):
         self.db, self.h5, self.cameras, self.summary = db, h5, cameras, summary
         self.overwrite, self.visualize, self.image_dir = overwrite, visualize, image_dir
 
@@ -467,11 +543,12 @@ class _Store:
         try:
             if self.db is not None:
                 _, cam.camera_id, _ = self.db.write_image(
-                    name, feats, cam.camera, cam.prior, cam.camera_id,
-                    overwrite=self.overwrite)
+                    name, feats, cam.camera, cam.prior, cam.camera_id, overwrite=self.overwrite
+                )
             if self.h5 is not None:
-                self.h5.write(name, feats, (cam.camera.width, cam.camera.height),
-                              overwrite=self.overwrite)
+                self.h5.write(
+                    name, feats, (cam.camera.width, cam.camera.height), overwrite=self.overwrite
+                )
         except Exception as e:
             logger.debug("writing %s", name, exc_info=True)
             summary.failed[name] = f"writing features: {type(e).__name__}: {e}"
@@ -485,7 +562,12 @@ class _Store:
             from .viz import save_visualizations
 
             try:
-                save_visualizations(Path(self.visualize), name,
-                                    read_image(self.image_dir / name), cam.camera, result)
+                save_visualizations(
+                    Path(self.visualize),
+                    name,
+                    read_image(self.image_dir / name),
+                    cam.camera,
+                    result,
+                )
             except Exception as e:  # a picture must never fail the extraction
                 logger.warning("%s: visualisation failed: %s", name, e)

@@ -35,8 +35,10 @@ class Features:
     @property
     def scales(self) -> np.ndarray:
         """(N,) COLMAP scale: mean norm of the frame's columns."""
-        return 0.5 * (np.linalg.norm(self.shapes[:, :, 0], axis=1)
-                      + np.linalg.norm(self.shapes[:, :, 1], axis=1))
+        return 0.5 * (
+            np.linalg.norm(self.shapes[:, :, 0], axis=1)
+            + np.linalg.norm(self.shapes[:, :, 1], axis=1)
+        )
 
     @property
     def orientations(self) -> np.ndarray:
@@ -49,19 +51,28 @@ class Features:
 
     @classmethod
     def empty(cls) -> "Features":
-        return cls(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 128), np.uint8),
-                   np.zeros(0, np.int32))
+        return cls(
+            np.zeros((0, 2)),
+            np.zeros((0, 2, 2)),
+            np.zeros((0, 128), np.uint8),
+            np.zeros(0, np.int32),
+        )
 
     @classmethod
     def concatenate(cls, parts: list["Features"]) -> "Features":
         if not parts:
             return cls.empty()
-        return cls(*(np.concatenate([getattr(p, f) for p in parts])
-                     for f in ("keypoints", "shapes", "descriptors", "patch")))
+        return cls(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("keypoints", "shapes", "descriptors", "patch")
+            )
+        )
 
     def subset(self, index: np.ndarray) -> "Features":
-        return Features(self.keypoints[index], self.shapes[index], self.descriptors[index],
-                        self.patch[index])
+        return Features(
+            self.keypoints[index], self.shapes[index], self.descriptors[index], self.patch[index]
+        )
 
 
 def similarity_frames(scales: np.ndarray, orientations: np.ndarray) -> np.ndarray:
@@ -115,10 +126,21 @@ def retain_freed_memory() -> bool:
     return bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, 2**31 - 1))
 
 
-def _extractor(conf: SiftConf, max_num_features: int, first_octave: int,
-               num_octaves: int = _DEFAULT_NUM_OCTAVES):
-    key = (conf.peak_threshold, conf.edge_threshold, conf.max_num_orientations, conf.upright,
-           int(max_num_features), int(first_octave), int(num_octaves))
+def _extractor(
+    conf: SiftConf,
+    max_num_features: int,
+    first_octave: int,
+    num_octaves: int = _DEFAULT_NUM_OCTAVES,
+):
+    key = (
+        conf.peak_threshold,
+        conf.edge_threshold,
+        conf.max_num_orientations,
+        conf.upright,
+        int(max_num_features),
+        int(first_octave),
+        int(num_octaves),
+    )
     ex = _EXTRACTORS.pop(key, None)
     if ex is None:
         while len(_EXTRACTORS) >= max(1, MAX_LIVE_EXTRACTORS):
@@ -138,8 +160,13 @@ def _extractor(conf: SiftConf, max_num_features: int, first_octave: int,
     return ex
 
 
-def _run_sift(image: np.ndarray, conf: SiftConf, n: int, first_octave: int,
-              num_octaves: int = _DEFAULT_NUM_OCTAVES) -> tuple[np.ndarray, np.ndarray]:
+def _run_sift(
+    image: np.ndarray,
+    conf: SiftConf,
+    n: int,
+    first_octave: int,
+    num_octaves: int = _DEFAULT_NUM_OCTAVES,
+) -> tuple[np.ndarray, np.ndarray]:
     """One pycolmap SIFT call on a contiguous (h, w) uint8 image -> ((N, 4) float64
     [x, y, scale, orientation] in COLMAP convention, (N, 128) uint8 descriptors), in COLMAP's
     order: DoG level by DoG level, finest first."""
@@ -160,8 +187,9 @@ def count_detections(m: np.ndarray) -> int:
     return 1 + int(np.any(m[1:, :3] != m[:-1, :3], axis=1).sum())
 
 
-def _sift_coarse_first(image: np.ndarray, conf: SiftConf, n: int, first_octave: int
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def _sift_coarse_first(
+    image: np.ndarray, conf: SiftConf, n: int, first_octave: int
+) -> tuple[np.ndarray, np.ndarray]:
     """About the output of COLMAP SIFT with budget n and ``first_octave``, skipping the first
     octave (4x the pixels of the next: ~3/4 of the cost) when the budget does not reach it.
 
@@ -186,9 +214,13 @@ def _sift_coarse_first(image: np.ndarray, conf: SiftConf, n: int, first_octave: 
     return np.concatenate([fine[0], coarse[0]]), np.concatenate([fine[1], coarse[1]])
 
 
-def detect_sift(image: np.ndarray, conf: SiftConf = SiftConf(),
-                max_num_features: int | None = None, first_octave: int | None = None,
-                coarse_first: bool = False) -> Features:
+def detect_sift(
+    image: np.ndarray,
+    conf: SiftConf = SiftConf(),
+    max_num_features: int | None = None,
+    first_octave: int | None = None,
+    coarse_first: bool = False,
+) -> Features:
     """COLMAP SIFT on a grayscale uint8 image (h, w); keypoints in that image's frame.
 
     Images larger than ``conf.max_image_size`` are downscaled first, as COLMAP does, and the
@@ -226,8 +258,9 @@ def detect_sift(image: np.ndarray, conf: SiftConf = SiftConf(),
     return Features(xy, shapes, desc, np.full(len(m), -1, np.int32))
 
 
-def coarse_first_pays(shape: tuple[int, int], max_num_features: int,
-                      conf: SiftConf = SiftConf()) -> bool:
+def coarse_first_pays(
+    shape: tuple[int, int], max_num_features: int, conf: SiftConf = SiftConf()
+) -> bool:
     """Whether ``detect_sift`` should run ``coarse_first`` on an image of ``shape`` (h, w)
     with this budget: ``conf.coarse_first`` and at least
     ``conf.coarse_first_pixels_per_feature`` pixels per feature after SIFT's downscaling to
@@ -237,7 +270,8 @@ def coarse_first_pays(shape: tuple[int, int], max_num_features: int,
         s = conf.max_image_size / max(h, w)
         h, w = h * s, w * s
     return bool(conf.coarse_first) and h * w >= conf.coarse_first_pixels_per_feature * max(
-        1, max_num_features)
+        1, max_num_features
+    )
 
 
 def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray:
@@ -253,8 +287,7 @@ def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray
     return np.floor(share).astype(int)
 
 
-def keypoints_in_mask(xy: np.ndarray, mask: np.ndarray, image_size: tuple[int, int]
-                      ) -> np.ndarray:
+def keypoints_in_mask(xy: np.ndarray, mask: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     """(N,) bool: COLMAP-convention points of an image of size (W, H) that fall on True
     cells of ``mask`` (h, w), a grid covering that image (nearest cell)."""
     W, H = image_size

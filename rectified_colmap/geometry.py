@@ -125,8 +125,7 @@ def order_frame(D: np.ndarray, support: np.ndarray) -> tuple[np.ndarray, np.ndar
     return D, order
 
 
-def scaled_size(width: int, height: int, max_size: float, min_side: int = 8
-                ) -> tuple[int, int]:
+def scaled_size(width: int, height: int, max_size: float, min_side: int = 8) -> tuple[int, int]:
     """Size of an image scaled down (never up) so that its longer side is at most max_size.
 
     Args:
@@ -151,5 +150,11 @@ def rays_from_K(K: np.ndarray, width: int, height: int) -> np.ndarray:
         distortion use camera.grid_rays (through pycolmap).
     """
     xy = pixel_centers(width, height)
-    return np.stack([(xy[..., 0] - K[0, 2]) / K[0, 0], (xy[..., 1] - K[1, 2]) / K[1, 1],
-                     np.ones((height, width))], -1)
+    return np.stack(
+        [
+            (xy[..., 0] - K[0, 2]) / K[0, 0],
+            (xy[..., 1] - K[1, 2]) / K[1, 1],
+            np.ones((height, width)),
+        ],
+        -1,
+    )

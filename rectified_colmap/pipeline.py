@@ -21,12 +21,10 @@ from . import camera as cam_utils
 from .config import ExtractConf
 from .dedup import fill_from_plain
 from .depth import DepthMap, resample_depth
-from .features import (Features, coarse_first_pays, detect_sift, keypoints_in_mask,
-                       split_budget)
+from .features import Features, coarse_first_pays, detect_sift, keypoints_in_mask, split_budget
 from .normals import backproject, estimate_normals
 from .planes import PlaneResult, detect_planes
-from .rectify import (Rectification, plan_rectification, rectified_to_image,
-                      warp_to_rectified)
+from .rectify import Rectification, plan_rectification, rectified_to_image, warp_to_rectified
 
 logger = logging.getLogger(__name__)
 
@@ -49,8 +47,9 @@ def work_size(width: int, height: int, max_size: int) -> tuple[int, int]:
     return max(8, round(width * s)), max(8, round(height * s))
 
 
-def depth_to_normals(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf,
-                     shift: float | None = None) -> np.ndarray:
+def depth_to_normals(
+    depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf, shift: float | None = None
+) -> np.ndarray:
     """Depth of any resolution and kind -> normals (h, w, 3) on the work grid.
 
     The grid is never finer than the depth map: upsampled depth is piecewise constant or
@@ -72,8 +71,13 @@ def _disparity_shift(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf
     return float(estimate_shift(depth.values, camera, conf))
 
 
-def viewing_masks(camera: pycolmap.Camera, rects: list[Rectification], patches,
-                  shape: tuple[int, int], max_viewing_angle_deg: float) -> np.ndarray:
+def viewing_masks(
+    camera: pycolmap.Camera,
+    rects: list[Rectification],
+    patches,
+    shape: tuple[int, int],
+    max_viewing_angle_deg: float,
+) -> np.ndarray:
     """(n, h, w) bool: the work-grid cells each rectification covers: cells of its patch
     whose viewing angle is within the limit (cells beyond it are left to plain SIFT).
     Patches may overlap (depth-free whole-image warps): a cell can be in several masks."""
@@ -121,8 +125,9 @@ def plain_sift(gray: np.ndarray, conf: ExtractConf) -> Features:
     return detect_sift(gray, conf.sift, n, coarse_first=coarse_first_pays(gray.shape, n, conf.sift))
 
 
-def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: ExtractConf,
-                   margin: int = 16) -> Features:
+def plain_features(
+    gray: np.ndarray, region: np.ndarray, budget: int, conf: ExtractConf, margin: int = 16
+) -> Features:
     """About ``budget`` plain SIFT features on the pixels of ``region`` (a grid covering the
     image), detected on the region's bounding box only."""
     H, W = gray.shape
@@ -132,18 +137,25 @@ def plain_features(gray: np.ndarray, region: np.ndarray, budget: int, conf: Extr
     x1 = min(W, int(np.ceil((cols[-1] + 1) * W / w)) + margin)
     y0 = max(0, int(np.floor(rows[0] * H / h)) - margin)
     y1 = min(H, int(np.ceil((rows[-1] + 1) * H / h)) + margin)
-    box = region[int(y0 * h / H):int(np.ceil(y1 * h / H)), int(x0 * w / W):int(np.ceil(x1 * w / W))]
+    box = region[
+        int(y0 * h / H) : int(np.ceil(y1 * h / H)), int(x0 * w / W) : int(np.ceil(x1 * w / W))
+    ]
     n = round(budget * box.size / max(region.sum(), 1))  # SIFT's budget covers the whole box
     box_img = np.ascontiguousarray(gray[y0:y1, x0:x1])
-    feats = detect_sift(box_img, conf.sift, n,
-                        coarse_first=coarse_first_pays(box_img.shape, n, conf.sift))
+    feats = detect_sift(
+        box_img, conf.sift, n, coarse_first=coarse_first_pays(box_img.shape, n, conf.sift)
+    )
     feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
 
 
-def orient_with_vanishing_points(gray: np.ndarray, camera: pycolmap.Camera,
-                                 planes: PlaneResult, conf: ExtractConf,
-                                 rng: np.random.Generator) -> PlaneResult:
+def orient_with_vanishing_points(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    planes: PlaneResult,
+    conf: ExtractConf,
+    rng: np.random.Generator,
+) -> PlaneResult:
     """Depth says WHICH pixels form planes, lines say HOW they are oriented: when a direction
     snapped to a trusted vanishing direction, each patch takes its fused direction (with the
     patch's sign; unsnapped directions are rotated with the snapped ones); patches of a
@@ -167,8 +179,9 @@ def orient_with_vanishing_points(gray: np.ndarray, camera: pycolmap.Camera,
     return replace(planes, directions=vp.directions, patches=patches)
 
 
-def patch_evidence(gray: np.ndarray, camera: pycolmap.Camera, patches
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def patch_evidence(
+    gray: np.ndarray, camera: pycolmap.Camera, patches
+) -> tuple[np.ndarray, np.ndarray]:
     """Per patch: (median viewing angle in degrees, median texture), each (n,).
 
     The viewing angle of a cell is the angle between its ray and the patch normal (0: the
@@ -190,8 +203,7 @@ def patch_evidence(gray: np.ndarray, camera: pycolmap.Camera, patches
     return angle, texture
 
 
-def patches_worth_rectifying(gray: np.ndarray, camera: pycolmap.Camera, patches,
-                             conf) -> list[int]:
+def patches_worth_rectifying(gray: np.ndarray, camera: pycolmap.Camera, patches, conf) -> list[int]:
     """Indices of the patches to rectify (conf: RectifyConf). Left to plain SIFT (at full
     budget: the pipeline fills from plain SIFT) are patches seen nearly frontally (median
     viewing angle under conf.min_rectify_angle_deg: the warp would change little) and
@@ -199,21 +211,26 @@ def patches_worth_rectifying(gray: np.ndarray, camera: pycolmap.Camera, patches,
     angle, texture = patch_evidence(gray, camera, patches)
     keep = (angle >= conf.min_rectify_angle_deg) & (texture >= conf.min_texture)
     if len(patches):
-        logger.debug("patches: viewing angle %s, texture %s -> rectify %s",
-                     np.round(angle), np.round(texture), keep.astype(int))
+        logger.debug(
+            "patches: viewing angle %s, texture %s -> rectify %s",
+            np.round(angle),
+            np.round(texture),
+            keep.astype(int),
+        )
     return [int(i) for i in np.flatnonzero(keep)]
 
 
-def plan_rectifications(camera: pycolmap.Camera, patches, indices: list[int],
-                        conf: ExtractConf) -> list[Rectification]:
+def plan_rectifications(
+    camera: pycolmap.Camera, patches, indices: list[int], conf: ExtractConf
+) -> list[Rectification]:
     """Rectifications of the given patches, scaled down together when their summed size
     exceeds ``conf.rectify.max_total_area_factor`` x the image area x the patches'
     overlap (summed patch areas / area of their union: 1 for disjoint patches; up to 3
     for depth-free whole-image warps, which so keep the resolution that disjoint patches
     of their size would get)."""
+
     def plan(scale):
-        rects = (plan_rectification(camera, patches[i], i, conf.rectify, scale)
-                 for i in indices)
+        rects = (plan_rectification(camera, patches[i], i, conf.rectify, scale) for i in indices)
         return [r for r in rects if r is not None]
 
     rects = plan(1.0)
@@ -228,31 +245,60 @@ def plan_rectifications(camera: pycolmap.Camera, patches, indices: list[int],
     return rects
 
 
-def rectified_features(gray: np.ndarray, camera: pycolmap.Camera, rect: Rectification,
-                       index: int, budget: int, conf: ExtractConf) -> Features:
+def rectified_features(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    rect: Rectification,
+    index: int,
+    budget: int,
+    conf: ExtractConf,
+) -> Features:
     """SIFT inside one rectified patch, mapped back to the original image."""
     patch_img = warp_to_rectified(gray, camera, rect)
-    feats = detect_sift(patch_img, conf.sift, budget, conf.sift.patch_first_octave,
-                        coarse_first=coarse_first_pays(patch_img.shape, budget, conf.sift))
+    feats = detect_sift(
+        patch_img,
+        conf.sift,
+        budget,
+        conf.sift.patch_first_octave,
+        coarse_first=coarse_first_pays(patch_img.shape, budget, conf.sift),
+    )
     if len(feats) == 0:
         return feats
     b = conf.rectify.border
     valid = rect.mask.astype(np.uint8)
     if b > 0:
-        valid = cv2.erode(valid, np.ones((2 * b + 1, 2 * b + 1), np.uint8),
-                          borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        valid = cv2.erode(
+            valid,
+            np.ones((2 * b + 1, 2 * b + 1), np.uint8),
+            borderType=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
     keep = keypoints_in_mask(feats.keypoints, valid.astype(bool), rect.size)
     feats = feats.subset(keep)
     xy, J = rectified_to_image(camera, rect, feats.keypoints)
-    inside = (np.isfinite(xy).all(1) & (xy[:, 0] >= 0) & (xy[:, 1] >= 0)
-              & (xy[:, 0] <= camera.width) & (xy[:, 1] <= camera.height))
-    return Features(xy[inside], (J @ feats.shapes)[inside], feats.descriptors[inside],
-                    np.full(int(inside.sum()), index, np.int32))
+    inside = (
+        np.isfinite(xy).all(1)
+        & (xy[:, 0] >= 0)
+        & (xy[:, 1] >= 0)
+        & (xy[:, 0] <= camera.width)
+        & (xy[:, 1] <= camera.height)
+    )
+    return Features(
+        xy[inside],
+        (J @ feats.shapes)[inside],
+        feats.descriptors[inside],
+        np.full(int(inside.sum()), index, np.int32),
+    )
 
 
-def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | None,
-                  conf: ExtractConf | None = None, rng: np.random.Generator | None = None,
-                  normals: np.ndarray | None = None) -> ImageResult:
+def extract_image(
+    image: np.ndarray,
+    camera: pycolmap.Camera,
+    depth: DepthMap | None,
+    conf: ExtractConf | None = None,
+    rng: np.random.Generator | None = None,
+    normals: np.ndarray | None = None,
+) -> ImageResult:
     """Rectified SIFT of one image.
 
     image: (H, W) uint8 grayscale or (H, W, 3) uint8 RGB; camera: its pycolmap.Camera
@@ -277,8 +323,9 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
 
         t0 = time.perf_counter()
         w, h = work_size(W, H, conf.normals.work_max_size)
-        planes, _ = depth_free_planes(gray, camera, (h, w), conf.vp,
-                                      conf.planes.min_area_frac, rng=rng)
+        planes, _ = depth_free_planes(
+            gray, camera, (h, w), conf.vp, conf.planes.min_area_frac, rng=rng
+        )
         t["vp"] = time.perf_counter() - t0
     else:
         t0 = time.perf_counter()
@@ -298,8 +345,9 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     t0 = time.perf_counter()
     todo = patches_worth_rectifying(gray, camera, planes.patches, conf.rectify)
     rects = plan_rectifications(camera, planes.patches, todo, conf)
-    masks = viewing_masks(camera, rects, planes.patches, planes.labels.shape,
-                          conf.rectify.max_viewing_angle_deg)
+    masks = viewing_masks(
+        camera, rects, planes.patches, planes.labels.shape, conf.rectify.max_viewing_angle_deg
+    )
     cover = viewing_coverage(masks)
     t["homographies"] = time.perf_counter() - t0
     result = ImageResult(Features.empty(), planes, rects, cover, normals, t)
@@ -322,8 +370,9 @@ def extract_image(image: np.ndarray, camera: pycolmap.Camera, depth: DepthMap | 
     t["warps+sift_patches"] = 0.0
     for i, rect in enumerate(rects):
         t0 = time.perf_counter()
-        parts.append(rectified_features(gray, camera, rect, rect.patch_index,
-                                        int(budgets[i + 1]), conf))
+        parts.append(
+            rectified_features(gray, camera, rect, rect.patch_index, int(budgets[i + 1]), conf)
+        )
         t["warps+sift_patches"] += time.perf_counter() - t0
     if not conf.dedup.enabled:
         result.features = Features.concatenate([plain] + parts)

@@ -55,8 +55,9 @@ def _modes(cands: np.ndarray, pts: np.ndarray, cos_t: float) -> np.ndarray:
     return (np.abs(cands @ pts.T) >= cos_t).sum(1)
 
 
-def _initial_rotations(n: np.ndarray, conf: PlaneConf, rng: np.random.Generator
-                       ) -> list[np.ndarray]:
+def _initial_rotations(
+    n: np.ndarray, conf: PlaneConf, rng: np.random.Generator
+) -> list[np.ndarray]:
     """First the strongest normal direction and the strongest direction orthogonal to it,
     then random rotations."""
     cos_t = np.cos(np.deg2rad(conf.inlier_angle_deg))
@@ -86,8 +87,9 @@ def _nearest_rotation(m: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
-def _orthogonal_kmeans(n: np.ndarray, D: np.ndarray, cos_t: float, num_iters: int
-                       ) -> tuple[np.ndarray, int, np.ndarray]:
+def _orthogonal_kmeans(
+    n: np.ndarray, D: np.ndarray, cos_t: float, num_iters: int
+) -> tuple[np.ndarray, int, np.ndarray]:
     """Alternate assignment and Procrustes refit from D. Returns (D, inliers, counts)."""
     prev = None
     for _ in range(max(1, num_iters)):
@@ -121,9 +123,9 @@ def _canonical(D: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return D, counts[order]
 
 
-def fit_dominant_directions(normals: np.ndarray, conf: PlaneConf = PlaneConf(),
-                            rng: np.random.Generator | None = None
-                            ) -> tuple[np.ndarray | None, np.ndarray]:
+def fit_dominant_directions(
+    normals: np.ndarray, conf: PlaneConf = PlaneConf(), rng: np.random.Generator | None = None
+) -> tuple[np.ndarray | None, np.ndarray]:
     """Orthogonal k-means (with antipodes) on (N, 3) unit normals -> (directions (3, 3) or
     None, support (3,)).
 
@@ -150,8 +152,9 @@ def fit_dominant_directions(normals: np.ndarray, conf: PlaneConf = PlaneConf(),
     return D, counts / len(n)
 
 
-def assign_directions(normals: np.ndarray, directions: np.ndarray,
-                      conf: PlaneConf = PlaneConf()) -> np.ndarray:
+def assign_directions(
+    normals: np.ndarray, directions: np.ndarray, conf: PlaneConf = PlaneConf()
+) -> np.ndarray:
     """(h, w, 3) normals (NaN = none) -> labels (h, w) int8."""
     D = np.asarray(directions, dtype=np.float64)
     dots = np.asarray(normals, dtype=np.float64) @ D.T
@@ -164,8 +167,9 @@ def assign_directions(normals: np.ndarray, directions: np.ndarray,
     return labels.astype(np.int8)
 
 
-def find_patches(labels: np.ndarray, directions: np.ndarray,
-                 conf: PlaneConf = PlaneConf()) -> list[Patch]:
+def find_patches(
+    labels: np.ndarray, directions: np.ndarray, conf: PlaneConf = PlaneConf()
+) -> list[Patch]:
     """Connected components per label (direction AND sign), small ones dropped.
 
     Each label mask is first opened (conf.opening_radius); components use 8-connectivity.
@@ -173,8 +177,7 @@ def find_patches(labels: np.ndarray, directions: np.ndarray,
     h, w = labels.shape
     min_area = conf.min_area_frac * h * w
     r = int(conf.opening_radius)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) if r > 0 \
-        else None
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) if r > 0 else None
     patches = []
     for lab in range(6):
         mask = (labels == lab).astype(np.uint8)
@@ -194,8 +197,9 @@ def find_patches(labels: np.ndarray, directions: np.ndarray,
     return patches
 
 
-def detect_planes(normals: np.ndarray, conf: PlaneConf = PlaneConf(),
-                  rng: np.random.Generator | None = None) -> PlaneResult:
+def detect_planes(
+    normals: np.ndarray, conf: PlaneConf = PlaneConf(), rng: np.random.Generator | None = None
+) -> PlaneResult:
     """fit_dominant_directions + assign_directions + find_patches.
 
     ``support`` here is the fraction of all valid normals of the grid carrying each axis's

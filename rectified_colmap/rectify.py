@@ -66,8 +66,7 @@ def image_to_rectified_homography(camera: pycolmap.Camera, rect: Rectification) 
     return rect.K @ rect.R @ np.linalg.inv(K)
 
 
-def _rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray,
-                                                                          np.ndarray]:
+def _rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rays (N, 3) with z = 1 -> (virtual normalised coords (N, 2), d(virtual)/d(ray xy)
     (N, 2, 2)) for the rotation R (virtual focal 1)."""
     Xv = rays @ R.T
@@ -90,8 +89,10 @@ def _image_to_ray_jacobian(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarra
     for j in range(2):
         d = np.zeros(2)
         d[j] = h
-        J[:, :, j] = (cam_utils.image_to_rays(camera, xy + d)[:, :2]
-                      - cam_utils.image_to_rays(camera, xy - d)[:, :2]) / (2 * h)
+        J[:, :, j] = (
+            cam_utils.image_to_rays(camera, xy + d)[:, :2]
+            - cam_utils.image_to_rays(camera, xy - d)[:, :2]
+        ) / (2 * h)
     return J
 
 
@@ -132,8 +133,9 @@ def _project(camera: pycolmap.Camera, X: np.ndarray) -> np.ndarray:
     return out.reshape(shape + (2,))
 
 
-def _rectified_mask(camera: pycolmap.Camera, rect: Rectification, patch_mask: np.ndarray,
-                    cos_max: float) -> np.ndarray:
+def _rectified_mask(
+    camera: pycolmap.Camera, rect: Rectification, patch_mask: np.ndarray, cos_max: float
+) -> np.ndarray:
     """(height, width) bool: rectified pixels whose rays are in front of the camera, within
     the viewing angle, inside the image and in the patch (nearest cell of the work grid)."""
     w, h = rect.size
@@ -141,7 +143,7 @@ def _rectified_mask(camera: pycolmap.Camera, rect: Rectification, patch_mask: np
     # Viewing angle: -ray . n = cos of the angle of the virtual ray (u, v, 1) to +z.
     u2 = (((np.arange(w) + OFFSET - cx) / f) ** 2)[None, :]
     v2 = (((np.arange(h) + OFFSET - cy) / f) ** 2)[:, None]
-    ok = 1.0 + u2 + v2 <= 1.0 / cos_max ** 2
+    ok = 1.0 + u2 + v2 <= 1.0 / cos_max**2
     gh, gw = patch_mask.shape
     A = rect.R.T @ np.linalg.inv(rect.K)  # homogeneous rectified pixel -> original ray
     if cam_utils.is_pinhole(camera):
@@ -151,17 +153,26 @@ def _rectified_mask(camera: pycolmap.Camera, rect: Rectification, patch_mask: np
         ok &= A[2, 0] * x + A[2, 1] * y + A[2, 2] > 1e-12  # in front of the camera
         S = np.diag([gw / camera.width, gh / camera.height, 1.0])
         G = to_opencv_homography(S @ cam_utils.calibration_matrix(camera) @ A)
-        warped = cv2.warpPerspective(patch_mask.astype(np.uint8), G, (w, h),
-                                     flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        warped = cv2.warpPerspective(
+            patch_mask.astype(np.uint8),
+            G,
+            (w, h),
+            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         return ok & (warped > 0)
     X = _rectified_pixel_rays(rect)
     ok &= X[..., 2] > 1e-12
     idx = np.flatnonzero(ok)
     xy = _project(camera, X.reshape(-1, 3)[idx])
     with np.errstate(invalid="ignore"):
-        inside = ((xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] < camera.width)
-                  & (xy[:, 1] < camera.height))
+        inside = (
+            (xy[:, 0] >= 0)
+            & (xy[:, 1] >= 0)
+            & (xy[:, 0] < camera.width)
+            & (xy[:, 1] < camera.height)
+        )
     idx, xy = idx[inside], xy[inside]
     col = np.minimum((xy[:, 0] * (gw / camera.width)).astype(np.int64), gw - 1)
     row = np.minimum((xy[:, 1] * (gh / camera.height)).astype(np.int64), gh - 1)
@@ -170,9 +181,13 @@ def _rectified_mask(camera: pycolmap.Camera, rect: Rectification, patch_mask: np
     return out.reshape(h, w)
 
 
-def plan_rectification(camera: pycolmap.Camera, patch: Patch, patch_index: int,
-                       conf: RectifyConf = RectifyConf(), scale: float = 1.0
-                       ) -> Rectification | None:
+def plan_rectification(
+    camera: pycolmap.Camera,
+    patch: Patch,
+    patch_index: int,
+    conf: RectifyConf = RectifyConf(),
+    scale: float = 1.0,
+) -> Rectification | None:
     """Virtual camera, size and valid mask for one patch; None if nothing usable remains
     (e.g. everything beyond the viewing-angle limit). ``scale`` multiplies the virtual focal
     length after the caps (the pipeline's budget on the total rectified area).
@@ -194,7 +209,8 @@ def plan_rectification(camera: pycolmap.Camera, patch: Patch, patch_index: int,
     rays = cam_utils.image_to_rays(camera, xy)
     cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
     cos_view = -(rays[:, 0] * n[0] + rays[:, 1] * n[1] + rays[:, 2] * n[2]) / np.sqrt(
-        rays[:, 0] ** 2 + rays[:, 1] ** 2 + rays[:, 2] ** 2)
+        rays[:, 0] ** 2 + rays[:, 1] ** 2 + rays[:, 2] ** 2
+    )
     keep = np.isfinite(cos_view) & (cos_view >= cos_max) & (cos_view > 0) & (rays[:, 2] > 0)
     if not keep.any():
         return None
@@ -236,28 +252,37 @@ def plan_rectification(camera: pycolmap.Camera, patch: Patch, patch_index: int,
     size = np.maximum(size, 1)
     cx, cy = conf.border - lo * f
     K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-    rect = Rectification(R=R, K=K, size=(int(size[0]), int(size[1])),
-                         mask=np.zeros((int(size[1]), int(size[0])), bool), normal=n,
-                         patch_index=patch_index)
+    rect = Rectification(
+        R=R,
+        K=K,
+        size=(int(size[0]), int(size[1])),
+        mask=np.zeros((int(size[1]), int(size[0])), bool),
+        normal=n,
+        patch_index=patch_index,
+    )
     rect.mask = _rectified_mask(camera, rect, mask, cos_max)
     if not rect.mask.any():
         return None
     return rect
 
 
-def warp_to_rectified(image: np.ndarray, camera: pycolmap.Camera, rect: Rectification
-                      ) -> np.ndarray:
+def warp_to_rectified(
+    image: np.ndarray, camera: pycolmap.Camera, rect: Rectification
+) -> np.ndarray:
     """Render the rectified patch (height, width[, C]) from the original image (bilinear);
     pixels outside rect.mask are 0."""
     image = np.asarray(image)
     if image.shape[:2] != (camera.height, camera.width):
-        raise ValueError(f"warp_to_rectified: image is {image.shape[1]}x{image.shape[0]} but "
-                         f"the camera is {camera.width}x{camera.height}")
+        raise ValueError(
+            f"warp_to_rectified: image is {image.shape[1]}x{image.shape[0]} but "
+            f"the camera is {camera.width}x{camera.height}"
+        )
     w, h = rect.size
     if cam_utils.is_pinhole(camera):
         H = to_opencv_homography(image_to_rectified_homography(camera, rect))
-        out = cv2.warpPerspective(image, H, (w, h), flags=cv2.INTER_LINEAR,
-                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out = cv2.warpPerspective(
+            image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
     else:
         if max(w, h) >= 32767:
             raise ValueError(f"rectified patch {w}x{h} too large for cv2.remap")
@@ -266,15 +291,22 @@ def warp_to_rectified(image: np.ndarray, camera: pycolmap.Camera, rect: Rectific
         X = _rectified_pixel_rays(rect)[rect.mask]
         xy = to_opencv_points(_project(camera, X))
         maps[rect.mask] = np.where(np.isfinite(xy), xy, -10.0)
-        out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out = cv2.remap(
+            image,
+            maps[..., 0],
+            maps[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
     # Also removes rays behind the source camera, which warpPerspective mirrors.
     out[~rect.mask] = 0
     return out
 
 
-def rectified_to_image(camera: pycolmap.Camera, rect: Rectification, xy: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def rectified_to_image(
+    camera: pycolmap.Camera, rect: Rectification, xy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) rectified COLMAP pixel coords -> ((N, 2) original image COLMAP pixel coords,
     (N, 2, 2) Jacobians d(image xy)/d(rectified xy)).
 
@@ -303,6 +335,8 @@ def rectified_to_image(camera: pycolmap.Camera, rect: Rectification, xy: np.ndar
             for j in range(2):
                 d = np.zeros(3)
                 d[j] = h
-                Jp[front, :, j] = (cam_utils.rays_to_image(camera, rays + d)
-                                   - cam_utils.rays_to_image(camera, rays - d)) / (2 * h)
+                Jp[front, :, j] = (
+                    cam_utils.rays_to_image(camera, rays + d)
+                    - cam_utils.rays_to_image(camera, rays - d)
+                ) / (2 * h)
     return out, Jp @ Jm

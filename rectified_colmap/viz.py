@@ -18,16 +18,21 @@ from .conventions import to_opencv_points
 from .rectify import warp_to_rectified
 
 # label 2k + s -> BGR colour
-_COLOURS = np.array([[60, 60, 230], [30, 30, 120], [60, 200, 60], [30, 100, 30],
-                     [230, 120, 40], [120, 60, 20]], np.uint8)
+_COLOURS = np.array(
+    [[60, 60, 230], [30, 30, 120], [60, 200, 60], [30, 100, 30], [230, 120, 40], [120, 60, 20]],
+    np.uint8,
+)
 
 
 def label_overlay(rgb: np.ndarray, labels: np.ndarray, alpha: float = 0.45) -> np.ndarray:
     """BGR image with labels (h, w) int8 (any grid covering the image) blended in."""
     H, W = rgb.shape[:2]
     lab = cv2.resize(labels.astype(np.int16), (W, H), interpolation=cv2.INTER_NEAREST)
-    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else cv2.cvtColor(
-        rgb, cv2.COLOR_GRAY2BGR)
+    bgr = (
+        cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        if rgb.ndim == 3
+        else cv2.cvtColor(rgb, cv2.COLOR_GRAY2BGR)
+    )
     colour = np.zeros_like(bgr)
     planar = lab >= 0
     colour[planar] = _COLOURS[lab[planar]]
@@ -42,8 +47,12 @@ def draw_planes(rgb: np.ndarray, result) -> np.ndarray:
     H, W = out.shape[:2]
     if result.coverage is not None:
         cover = cv2.resize(result.coverage, (W, H), interpolation=cv2.INTER_NEAREST)
-        edges = cv2.morphologyEx((cover >= 0).astype(np.uint8), cv2.MORPH_GRADIENT,
-                                 np.ones((3, 3), np.uint8)) > 0
+        edges = (
+            cv2.morphologyEx(
+                (cover >= 0).astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)
+            )
+            > 0
+        )
         out[edges] = (0, 255, 255)
     f = result.features
     if len(f):
@@ -55,20 +64,23 @@ def draw_planes(rgb: np.ndarray, result) -> np.ndarray:
     return out
 
 
-def draw_patches(gray: np.ndarray, camera: pycolmap.Camera, rects, height: int = 360
-                 ) -> np.ndarray | None:
+def draw_patches(
+    gray: np.ndarray, camera: pycolmap.Camera, rects, height: int = 360
+) -> np.ndarray | None:
     tiles = []
     for rect in rects:
         img = warp_to_rectified(gray, camera, rect)
         s = height / img.shape[0]
-        tiles.append(cv2.resize(img, (max(1, round(img.shape[1] * s)), height),
-                                interpolation=cv2.INTER_AREA))
+        tiles.append(
+            cv2.resize(img, (max(1, round(img.shape[1] * s)), height), interpolation=cv2.INTER_AREA)
+        )
         tiles.append(np.full((height, 4), 255, np.uint8))
     return np.concatenate(tiles[:-1], axis=1) if tiles else None
 
 
-def save_visualizations(out_dir: Path, name: str, rgb: np.ndarray,
-                        camera: pycolmap.Camera, result) -> list[Path]:
+def save_visualizations(
+    out_dir: Path, name: str, rgb: np.ndarray, camera: pycolmap.Camera, result
+) -> list[Path]:
     """Write the PNGs of one image; returns their paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

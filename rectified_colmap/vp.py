@@ -87,8 +87,9 @@ class Segments:
 
     @classmethod
     def empty(cls) -> "Segments":
-        return cls(np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
-                   np.zeros(0, int))
+        return cls(
+            np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int)
+        )
 
 
 @dataclass
@@ -134,33 +135,39 @@ class VpResult:
 
 # -- segments -----------------------------------------------------------------------------
 
+
 def detect_segments(image_gray: np.ndarray, conf: VpConf = VpConf()) -> np.ndarray:
     """LSD (OpenCV) on the image downscaled to conf.max_image_size -> (N, 2, 2) endpoints in
     COLMAP pixels of the full image, longest first, at most conf.max_segments, each at
     least conf.min_length_frac x max side long. Falls back to HoughLinesP on Canny."""
     img = np.asarray(image_gray)
     if img.ndim != 2 or img.dtype != np.uint8:
-        raise ValueError(f"detect_segments needs a (H, W) uint8 image, got {img.dtype} "
-                         f"{img.shape}")
+        raise ValueError(f"detect_segments needs a (H, W) uint8 image, got {img.dtype} {img.shape}")
     H, W = img.shape
     s = min(1.0, conf.max_image_size / max(H, W))
-    small = img if s == 1.0 else cv2.resize(img, (max(8, round(W * s)), max(8, round(H * s))),
-                                            interpolation=cv2.INTER_AREA)
+    small = (
+        img
+        if s == 1.0
+        else cv2.resize(
+            img, (max(8, round(W * s)), max(8, round(H * s))), interpolation=cv2.INTER_AREA
+        )
+    )
     h, w = small.shape
     try:
         lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
         raw = lsd.detect(small)[0]
     except (AttributeError, cv2.error):  # builds without LSD
         edges = cv2.Canny(small, 50, 150)
-        raw = cv2.HoughLinesP(edges, 1, np.pi / 360, 30,
-                              minLineLength=conf.min_length_frac * max(h, w), maxLineGap=2)
+        raw = cv2.HoughLinesP(
+            edges, 1, np.pi / 360, 30, minLineLength=conf.min_length_frac * max(h, w), maxLineGap=2
+        )
     if raw is None or len(raw) == 0:
         return np.zeros((0, 2, 2))
     seg = from_opencv_points(np.asarray(raw, np.float64).reshape(-1, 2, 2))
     seg = seg * np.array([W / w, H / h])
     length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=-1)
     keep = np.flatnonzero(length >= conf.min_length_frac * max(H, W))
-    keep = keep[np.argsort(-length[keep], kind="stable")][:conf.max_segments]
+    keep = keep[np.argsort(-length[keep], kind="stable")][: conf.max_segments]
     return seg[keep]
 
 
@@ -187,13 +194,15 @@ def sin_errors(normals: np.ndarray, mids: np.ndarray, V: np.ndarray) -> np.ndarr
     """sin(theta) (N, M) between N segments and M VP directions (module docstring)."""
     a = np.abs(normals @ V.T)
     b = mids @ V.T
-    return a / np.sqrt(np.maximum(1.0 - b * b, _MIN_SIN ** 2))
+    return a / np.sqrt(np.maximum(1.0 - b * b, _MIN_SIN**2))
 
 
 # -- Manhattan frame ----------------------------------------------------------------------
 
-def _hypotheses(seg: Segments, conf: VpConf, rng: np.random.Generator,
-                gravity: np.ndarray | None) -> np.ndarray:
+
+def _hypotheses(
+    seg: Segments, conf: VpConf, rng: np.random.Generator, gravity: np.ndarray | None
+) -> np.ndarray:
     """(M, 3, 3) candidate frames from minimal line sets of the longest segments."""
     k = min(len(seg), conf.num_sample_segments)
     L = seg.normals[:k]  # segments are sorted longest first
@@ -218,21 +227,20 @@ def _hypotheses(seg: Segments, conf: VpConf, rng: np.random.Generator,
     return frames
 
 
-def _ransac_scores(seg: Segments, frames: np.ndarray, sin_thr: float, num: int
-                   ) -> np.ndarray:
+def _ransac_scores(seg: Segments, frames: np.ndarray, sin_thr: float, num: int) -> np.ndarray:
     """(M,) inlier length of the ``num`` longest segments for each candidate frame
     (M, 3, 3). float32 and without square
     roots: sin(theta) < t  <=>  (l.v)^2 + t^2 (m.v)^2 < t^2 (up to the |m x v| floor)."""
     n = seg.normals[:num].astype(np.float32)  # segments are sorted longest first
     m = seg.mids[:num].astype(np.float32)
-    t2 = np.float32(sin_thr ** 2)
+    t2 = np.float32(sin_thr**2)
     inl = np.zeros((len(n), len(frames)), bool)
     for j in range(3):
         V = np.ascontiguousarray(frames[:, j].T, dtype=np.float32)
         a, b = n @ V, m @ V
         a *= a
         b *= b
-        np.minimum(b, np.float32(1.0 - _MIN_SIN ** 2), out=b)
+        np.minimum(b, np.float32(1.0 - _MIN_SIN**2), out=b)
         b *= t2
         a += b
         inl |= a < t2
@@ -255,13 +263,14 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
-def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.ndarray,
-                                                                 np.ndarray, np.ndarray]:
+def _refine(
+    seg: Segments, F: np.ndarray, conf: VpConf
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton on the frame's rotation with re-assignment.
 
     Returns (F, labels, observed (3,), sigma_deg (3,))."""
     total = seg.lengths.sum()
-    w_all = seg.lengths ** _WEXP / (seg.lengths ** _WEXP).mean()
+    w_all = seg.lengths**_WEXP / (seg.lengths**_WEXP).mean()
     A = np.zeros((3, 3))
     r = J = w = None
     num = max(1, conf.num_refine_iters)
@@ -272,8 +281,9 @@ def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.
         sin_thr = np.sin(np.deg2rad(conf.inlier_angle_deg * scales[min(it, len(scales) - 1)]))
         labels, _ = _assign(seg, F, sin_thr)
         counts = np.bincount(labels[labels >= 0], minlength=3)
-        support = np.bincount(labels[labels >= 0], weights=seg.lengths[labels >= 0],
-                              minlength=3) / total
+        support = (
+            np.bincount(labels[labels >= 0], weights=seg.lengths[labels >= 0], minlength=3) / total
+        )
         observed = (counts >= conf.min_vp_segments) & (support >= conf.min_vp_support)
         use = (labels >= 0) & observed[np.maximum(labels, 0)]
         if not use.any():
@@ -281,7 +291,7 @@ def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.
         v = F[labels[use]]
         ln = seg.normals[use]
         m = seg.mids[use]
-        s = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", m, v) ** 2, _MIN_SIN ** 2))
+        s = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", m, v) ** 2, _MIN_SIN**2))
         r = np.einsum("ij,ij->i", ln, v) / s
         J = np.cross(v, ln) / s[:, None]
         # Cauchy weights: clutter passing the threshold pulls less than the true lines
@@ -294,7 +304,7 @@ def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.
         F = F @ _rotvec_matrix(step).T
     # covariance of the rotation (radians^2): sigma0^2 A^-1, inf along unobserved axes
     dof = max(len(r) - 3, 1)
-    sigma0_sq = max(float((w_all[use] * r * r).sum() / dof), _MIN_SIGMA0 ** 2)
+    sigma0_sq = max(float((w_all[use] * r * r).sum() / dof), _MIN_SIGMA0**2)
     lam, U = np.linalg.eigh(A)
     null = lam <= 1e-6 * max(lam.max(), 1e-300)  # rotations the observed VPs do not fix
     cov = sigma0_sq * (U[:, ~null] / lam[~null]) @ U[:, ~null].T
@@ -302,14 +312,16 @@ def _refine(seg: Segments, F: np.ndarray, conf: VpConf) -> tuple[np.ndarray, np.
     for k in range(3):
         S = _skew(F[k])
         free = np.linalg.norm(np.cross(U[:, null].T, F[k]), axis=-1) > 1e-3
-        sigma[k] = np.inf if free.any() else \
-            np.sqrt(max(np.linalg.eigvalsh(S @ cov @ S.T).max(), 0.0))
+        sigma[k] = (
+            np.inf if free.any() else np.sqrt(max(np.linalg.eigvalsh(S @ cov @ S.T).max(), 0.0))
+        )
     sigma = sigma * _SIGMA_INFLATION
     sigma_deg = np.where(sigma < 1.0, np.degrees(sigma), np.inf)
     return F, labels, observed, sigma_deg
 
 
 # -- chance-level test -----------------------------------------------------------------
+
 
 def log10_binomial_tail(n: np.ndarray, k: np.ndarray, p: float) -> np.ndarray:
     """log10 P[X >= k] for X ~ Binomial(n, p), exact, elementwise over integer arrays n, k
@@ -325,8 +337,9 @@ def log10_binomial_tail(n: np.ndarray, k: np.ndarray, p: float) -> np.ndarray:
     terms = np.where(ok, logc + j * np.log(p) + (nn - j) * np.log1p(-p), -np.inf)
     top = terms.max(-1, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = (top[..., 0] + np.log(np.exp(terms - np.where(np.isfinite(top), top, 0.0))
-                                    .sum(-1))) / np.log(10)
+        out = (
+            top[..., 0] + np.log(np.exp(terms - np.where(np.isfinite(top), top, 0.0)).sum(-1))
+        ) / np.log(10)
     out = np.where(k <= 0, 0.0, out)
     return np.where(k > n, -np.inf, out)
 
@@ -358,23 +371,28 @@ def axis_log10_nfa(errors_deg: np.ndarray, conf: VpConf = VpConf()) -> np.ndarra
     n_t = inl.sum(0)
     log_p = log10_binomial_tail(n_w, n_t, t / w)
     rad = np.deg2rad(t)
-    tests = np.log10([3 * 2 * np.pi / rad ** 2, 2 * np.pi / rad, 1.0])
+    tests = np.log10([3 * 2 * np.pi / rad**2, 2 * np.pi / rad, 1.0])
     order = np.argsort(log_p, kind="stable")
     out = np.empty(3)
     out[order] = np.maximum.accumulate(log_p[order] + tests)
     return out
 
 
-def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | None = None,
-                  rng: np.random.Generator | None = None) -> ManhattanFrame:
+def fit_manhattan(
+    seg: Segments,
+    conf: VpConf = VpConf(),
+    gravity: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> ManhattanFrame:
     """Three orthogonal VPs from segments on the sphere (RANSAC + Gauss-Newton).
 
     ``gravity``: optional camera-frame unit vector (e.g. [0, 1, 0] for an upright camera);
     it only adds hypotheses and rejects frames without an axis near it."""
     rng = rng if rng is not None else np.random.default_rng(conf.seed)
     n = len(seg)
-    none = ManhattanFrame(None, np.full(3, np.inf), np.zeros(3), np.zeros(3, int),
-                          np.zeros(3, bool), np.full(n, -1))
+    none = ManhattanFrame(
+        None, np.full(3, np.inf), np.zeros(3), np.zeros(3, int), np.zeros(3, bool), np.full(n, -1)
+    )
     if n < 3:
         return none
     frames = _hypotheses(seg, conf, rng, gravity)
@@ -384,7 +402,7 @@ def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | 
     score = _ransac_scores(seg, frames, sin_thr, conf.num_score_segments)
     # refine the best few distinct hypotheses; the tightest soft inlier length wins
     best = None
-    for i in np.argsort(-score)[:max(1, conf.num_refine_starts)]:
+    for i in np.argsort(-score)[: max(1, conf.num_refine_starts)]:
         cand = _refine(seg, frames[i], conf)
         e = sin_errors(seg.normals, seg.mids, cand[0]).min(1)
         soft = float(seg.lengths @ np.maximum(0.0, 1.0 - (e / sin_thr) ** 2))
@@ -394,14 +412,15 @@ def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | 
     if not observed.any():
         return none
     counts = np.bincount(labels[labels >= 0], minlength=3)
-    support = np.bincount(labels[labels >= 0], weights=seg.lengths[labels >= 0],
-                          minlength=3) / seg.lengths.sum()
+    support = (
+        np.bincount(labels[labels >= 0], weights=seg.lengths[labels >= 0], minlength=3)
+        / seg.lengths.sum()
+    )
     # Trust needs strong VPs: random clutter alone reaches ~0.06 support per VP; and
     # sharp ones: foreshortened line-free texture gives 0.10-0.15 (axis_log10_nfa)
     errors = np.degrees(np.arcsin(np.minimum(sin_errors(seg.normals, seg.mids, F), 1.0)))
     log10_nfa = axis_log10_nfa(errors, conf)
-    strong = observed & (support >= conf.min_strong_support) & \
-        (log10_nfa <= conf.max_log10_nfa)
+    strong = observed & (support >= conf.min_strong_support) & (log10_nfa <= conf.max_log10_nfa)
     if strong.sum() == 0:
         sigma = np.full(3, np.inf)
     elif strong.sum() == 1:
@@ -416,11 +435,13 @@ def fit_manhattan(seg: Segments, conf: VpConf = VpConf(), gravity: np.ndarray | 
     remap = np.full(4, -1)
     remap[order] = np.arange(3)
     labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
-    return ManhattanFrame(F, sigma[order], support[order], counts[order], observed[order],
-                          labels, log10_nfa[order])
+    return ManhattanFrame(
+        F, sigma[order], support[order], counts[order], observed[order], labels, log10_nfa[order]
+    )
 
 
 # -- fusion -------------------------------------------------------------------------------
+
 
 def match_frame(directions: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Signed permutation of the frame rows best matching the directions (rows).
@@ -446,8 +467,9 @@ def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return _rotvec_matrix(axis / s * np.arctan2(s, float(a @ b)))
 
 
-def fuse_directions(directions: np.ndarray, mf: ManhattanFrame, conf: VpConf = VpConf()
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def fuse_directions(
+    directions: np.ndarray, mf: ManhattanFrame, conf: VpConf = VpConf()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Depth directions (3, 3) + Manhattan frame -> (directions, snapped, contradicted,
     support, sigma_deg), the last two per input direction (module docstring)."""
     D = np.asarray(directions, np.float64)
@@ -476,10 +498,14 @@ def fuse_directions(directions: np.ndarray, mf: ManhattanFrame, conf: VpConf = V
     return out, snapped, contradicted, support, sigma
 
 
-def refine_directions(image_gray: np.ndarray, camera: pycolmap.Camera,
-                      directions: np.ndarray | None, conf: VpConf = VpConf(),
-                      gravity: np.ndarray | None = None,
-                      rng: np.random.Generator | None = None) -> VpResult:
+def refine_directions(
+    image_gray: np.ndarray,
+    camera: pycolmap.Camera,
+    directions: np.ndarray | None,
+    conf: VpConf = VpConf(),
+    gravity: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> VpResult:
     """The pipeline's entry point: segments -> Manhattan frame -> fused directions.
 
     image_gray (H, W) uint8 matching the camera's size; directions (3, 3) rows from
@@ -487,8 +513,10 @@ def refine_directions(image_gray: np.ndarray, camera: pycolmap.Camera,
     directions stay None). Never raises on scenes without lines: nothing snaps."""
     img = np.asarray(image_gray)
     if img.shape[:2] != (camera.height, camera.width):
-        raise ValueError(f"refine_directions: image is {img.shape[1]}x{img.shape[0]} but its "
-                         f"camera is {camera.width}x{camera.height}")
+        raise ValueError(
+            f"refine_directions: image is {img.shape[1]}x{img.shape[0]} but its "
+            f"camera is {camera.width}x{camera.height}"
+        )
     seg = segments_on_sphere(camera, detect_segments(img, conf))
     mf = fit_manhattan(seg, conf, gravity, rng)
     seg.labels = mf.labels
@@ -497,15 +525,24 @@ def refine_directions(image_gray: np.ndarray, camera: pycolmap.Camera,
     D = np.asarray(directions, np.float64)
     out, snapped, contra, support, sigma = fuse_directions(D, mf, conf)
     change = _angle_deg(D, out)
-    logger.debug("vp: %d segments, frame support %s sigma %s, snapped %s, change %s deg",
-                 len(seg), np.round(mf.support, 2), np.round(mf.sigma_deg, 2), snapped,
-                 np.round(change, 1))
+    logger.debug(
+        "vp: %d segments, frame support %s sigma %s, snapped %s, change %s deg",
+        len(seg),
+        np.round(mf.support, 2),
+        np.round(mf.sigma_deg, 2),
+        snapped,
+        np.round(change, 1),
+    )
     return VpResult(out, snapped, support, mf.frame, seg, sigma, contra, change, mf)
 
 
-def manhattan_from_image(image_gray: np.ndarray, camera: pycolmap.Camera,
-                         conf: VpConf = VpConf(), gravity: np.ndarray | None = None,
-                         rng: np.random.Generator | None = None) -> VpResult:
+def manhattan_from_image(
+    image_gray: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: VpConf = VpConf(),
+    gravity: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> VpResult:
     """Depth-free mode: the line-derived frame as the dominant directions.
 
     ``directions`` is the frame (rows by support, like planes.fit_dominant_directions) when
@@ -517,12 +554,12 @@ def manhattan_from_image(image_gray: np.ndarray, camera: pycolmap.Camera,
     res.snapped = confident
     res.support = mf.support.copy()
     res.sigma_deg = mf.sigma_deg.copy()
-    res.directions = mf.frame.copy() if mf.frame is not None and confident.sum() >= 2 \
-        else None
+    res.directions = mf.frame.copy() if mf.frame is not None and confident.sum() >= 2 else None
     return res
 
 
 # -- per patch ----------------------------------------------------------------------------
+
 
 @dataclass
 class PatchCheck:
@@ -542,8 +579,13 @@ class PatchCheck:
     None (no verdict)."""
 
 
-def check_patch(result: VpResult, mask: np.ndarray, normal: np.ndarray,
-                camera: pycolmap.Camera, conf: VpConf = VpConf()) -> PatchCheck:
+def check_patch(
+    result: VpResult,
+    mask: np.ndarray,
+    normal: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: VpConf = VpConf(),
+) -> PatchCheck:
     """Do the patch's own lines agree with its normal?
 
     mask (h, w) bool on any grid covering the image (e.g. the work grid of planes.Patch);
@@ -582,6 +624,7 @@ def check_patch(result: VpResult, mask: np.ndarray, normal: np.ndarray,
 
 # -- depth-free planes --------------------------------------------------------------------
 
+
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
     """Background components not touching the border become foreground."""
     n, lab = cv2.connectedComponents((~mask).astype(np.uint8), connectivity=4)
@@ -591,9 +634,13 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     return mask | ~outside[lab]
 
 
-def line_support_patches(result: VpResult, camera: pycolmap.Camera,
-                         work_shape: tuple[int, int], conf: VpConf = VpConf(),
-                         min_area_frac: float = 0.005) -> tuple[list[Patch], np.ndarray]:
+def line_support_patches(
+    result: VpResult,
+    camera: pycolmap.Camera,
+    work_shape: tuple[int, int],
+    conf: VpConf = VpConf(),
+    min_area_frac: float = 0.005,
+) -> tuple[list[Patch], np.ndarray]:
     """Depth-free plane patches from labelled segments -> (patches, labels (h, w) int8).
 
     A plane with normal F[k] contains the lines of the two other VPs, so its image is where
@@ -622,8 +669,7 @@ def line_support_patches(result: VpResult, camera: pycolmap.Camera,
         lines = [p for p in np.round(xy * 16).astype(np.int32)]  # 4 fractional bits
         m = np.zeros((h, w), np.uint8)
         cv2.polylines(m, lines, False, 1, 1, cv2.LINE_8, shift=4)
-        dens[j] = cv2.boxFilter(m.astype(np.float32), -1, (k2, k2),
-                                borderType=cv2.BORDER_CONSTANT)
+        dens[j] = cv2.boxFilter(m.astype(np.float32), -1, (k2, k2), borderType=cv2.BORDER_CONSTANT)
     score = np.zeros((3, h, w), np.float32)
     for k in range(3):
         a, b = (k + 1) % 3, (k + 2) % 3
@@ -636,20 +682,24 @@ def line_support_patches(result: VpResult, camera: pycolmap.Camera,
     for k in range(3):
         for s in (0, 1):
             mask = _fill_holes(valid & (best == k) & (side[..., k] == bool(s)))
-            n, comp, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
-                                                                 connectivity=8)
+            n, comp, stats, _ = cv2.connectedComponentsWithStats(
+                mask.astype(np.uint8), connectivity=8
+            )
             for c in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_frac * h * w) + 1:
                 pm = comp == c
                 labels[pm] = 2 * k + s
-                patches.append(Patch(pm, k, F[k] * (-1.0 if s else 1.0),
-                                     float(pm.mean())))
+                patches.append(Patch(pm, k, F[k] * (-1.0 if s else 1.0), float(pm.mean())))
     patches.sort(key=lambda p: -p.area_frac)
     return patches, labels
 
 
-def whole_image_patches(result: VpResult, camera: pycolmap.Camera,
-                        work_shape: tuple[int, int], conf: VpConf = VpConf(),
-                        min_area_frac: float = 0.005) -> tuple[list[Patch], np.ndarray]:
+def whole_image_patches(
+    result: VpResult,
+    camera: pycolmap.Camera,
+    work_shape: tuple[int, int],
+    conf: VpConf = VpConf(),
+    min_area_frac: float = 0.005,
+) -> tuple[list[Patch], np.ndarray]:
     """The paper's VP baseline: whole-image warps -> (patches, labels (h, w) int8).
 
     For each trusted frame axis k (``result.snapped``) and each side of its vanishing line,
@@ -675,19 +725,22 @@ def whole_image_patches(result: VpResult, camera: pycolmap.Camera,
             mask = frontal > 0
             if mask.mean() < min_area_frac:
                 continue
-            patches.append(Patch(mask, int(k), F[k] * (-1.0 if s else 1.0),
-                                 float(mask.mean())))
+            patches.append(Patch(mask, int(k), F[k] * (-1.0 if s else 1.0), float(mask.mean())))
             better = mask & (frontal > best)
             labels[better], best[better] = 2 * k + s, frontal[better]
     patches.sort(key=lambda p: -p.area_frac)
     return patches, labels
 
 
-def depth_free_planes(image_gray: np.ndarray, camera: pycolmap.Camera,
-                      work_shape: tuple[int, int], conf: VpConf = VpConf(),
-                      min_area_frac: float = 0.005, gravity: np.ndarray | None = None,
-                      rng: np.random.Generator | None = None
-                      ) -> tuple[PlaneResult, VpResult]:
+def depth_free_planes(
+    image_gray: np.ndarray,
+    camera: pycolmap.Camera,
+    work_shape: tuple[int, int],
+    conf: VpConf = VpConf(),
+    min_area_frac: float = 0.005,
+    gravity: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> tuple[PlaneResult, VpResult]:
     """Depth-free mode: Manhattan frame from lines (manhattan_from_image) + patches ->
     a planes.PlaneResult on the work grid (no patches, directions None, without a
     confident frame: the pipeline then falls back to plain SIFT). The patches follow
@@ -695,11 +748,12 @@ def depth_free_planes(image_gray: np.ndarray, camera: pycolmap.Camera,
     whole_image_patches (the paper's VP baseline, overlapping)."""
     regions = {"lines": line_support_patches, "whole": whole_image_patches}
     if conf.depth_free_regions not in regions:
-        raise ValueError(f"vp.depth_free_regions must be one of {sorted(regions)}, "
-                         f"got {conf.depth_free_regions!r}")
+        raise ValueError(
+            f"vp.depth_free_regions must be one of {sorted(regions)}, "
+            f"got {conf.depth_free_regions!r}"
+        )
     res = manhattan_from_image(image_gray, camera, conf, gravity, rng)
-    patches, labels = regions[conf.depth_free_regions](res, camera, work_shape, conf,
-                                                       min_area_frac)
+    patches, labels = regions[conf.depth_free_regions](res, camera, work_shape, conf, min_area_frac)
     areas = np.bincount(labels[labels >= 0] // 2, minlength=3)[:3]
     support = areas / max(1, labels.size)
     return PlaneResult(res.directions, support, labels, patches), res
@@ -711,8 +765,11 @@ _VP_BGR = np.array([[60, 60, 235], [60, 210, 60], [235, 130, 40]])  # red, green
 
 
 def _bgr(image: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else \
-        cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    return (
+        cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if image.ndim == 2
+        else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    )
 
 
 def _cv_pt(xy: np.ndarray) -> tuple[int, int]:
@@ -731,8 +788,13 @@ def draw_segments(image: np.ndarray, result: VpResult) -> np.ndarray:
     return out
 
 
-def draw_directions(image: np.ndarray, camera: pycolmap.Camera, result: VpResult,
-                    depth_directions: np.ndarray | None = None, grid: int = 6) -> np.ndarray:
+def draw_directions(
+    image: np.ndarray,
+    camera: pycolmap.Camera,
+    result: VpResult,
+    depth_directions: np.ndarray | None = None,
+    grid: int = 6,
+) -> np.ndarray:
     """BGR image with, at a grid of anchors, needles pointing to each direction's VP:
     thick = fused directions (or the frame), thin white = the depth directions."""
     out = (_bgr(image) * 0.6).astype(np.uint8)
@@ -748,8 +810,7 @@ def draw_directions(image: np.ndarray, camera: pycolmap.Camera, result: VpResult
             u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
             for p, q in zip(anchors - length * u, anchors + length * u):
                 if np.isfinite(p).all() and np.isfinite(q).all():
-                    cv2.line(out, _cv_pt(p), _cv_pt(q), colour, thickness, cv2.LINE_AA,
-                             shift=4)
+                    cv2.line(out, _cv_pt(p), _cv_pt(q), colour, thickness, cv2.LINE_AA, shift=4)
 
     D = result.directions if result.directions is not None else result.frame
     if D is not None:

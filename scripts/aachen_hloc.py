@@ -64,8 +64,12 @@ def require_hloc():
 
     from rectified_colmap.eval.aachen import hloc_generation
 
-    logger.info("hloc %s from %s (API generation: %s)", getattr(hloc, "__version__", "?"),
-                Path(hloc.__file__).parent, hloc_generation(triangulation))
+    logger.info(
+        "hloc %s from %s (API generation: %s)",
+        getattr(hloc, "__version__", "?"),
+        Path(hloc.__file__).parent,
+        hloc_generation(triangulation),
+    )
     return hloc
 
 
@@ -82,9 +86,18 @@ def _extract_conf(method: str, conf: str | None, max_num_features: int | None):
     return out
 
 
-def extract_features(method: str, images: Path, features: Path, cameras: dict, work: Path,
-                     depth_model: str | None, depth_path: Path | None, conf: str | None,
-                     max_num_features: int | None, num_workers: int) -> None:
+def extract_features(
+    method: str,
+    images: Path,
+    features: Path,
+    cameras: dict,
+    work: Path,
+    depth_model: str | None,
+    depth_path: Path | None,
+    conf: str | None,
+    max_num_features: int | None,
+    num_workers: int,
+) -> None:
     """Features for every image of ``cameras`` (name -> pycolmap.Camera) into ``features``."""
     names = sorted(cameras)
     if method == "hloc-sift":
@@ -111,13 +124,21 @@ def extract_features(method: str, images: Path, features: Path, cameras: dict, w
         depth = {"depth_model": None, "depth_path": None}
     else:
         depth = {"depth_model": depth_model or DEFAULT_DEPTH_MODEL, "depth_path": depth_path}
-    s = extract(images, database=cam_db, hloc_features=features, image_list=names,
-                conf=_extract_conf(method, conf, max_num_features), num_workers=num_workers,
-                **depth)
+    s = extract(
+        images,
+        database=cam_db,
+        hloc_features=features,
+        image_list=names,
+        conf=_extract_conf(method, conf, max_num_features),
+        num_workers=num_workers,
+        **depth,
+    )
     logger.info("features (%s)\n%s", method, s.report())
     if s.failed:
-        raise SystemExit(f"feature extraction failed for {len(s.failed)} images: "
-                         f"{dict(list(s.failed.items())[:3])}")
+        raise SystemExit(
+            f"feature extraction failed for {len(s.failed)} images: "
+            f"{dict(list(s.failed.items())[:3])}"
+        )
 
 
 def run(args) -> dict:
@@ -129,15 +150,19 @@ def run(args) -> dict:
     from rectified_colmap.eval.pairs import read_pair_list, write_pair_list
 
     if args.make_mini_from is not None:
-        A.make_mini_aachen(args.make_mini_from, args.dataset, max_size=args.max_size,
-                           num_queries=args.num_queries)
+        A.make_mini_aachen(
+            args.make_mini_from, args.dataset, max_size=args.max_size, num_queries=args.num_queries
+        )
     dataset = args.dataset
     reference_sfm = args.reference_sfm or dataset / "3D-models" / "reference"
     loc_pairs = args.loc_pairs or dataset / "pairs-query-exhaustive.txt"
     images = dataset / "images" / "images_upright"
     query_lists = sorted((dataset / "queries").glob("*_time_queries_with_intrinsics.txt"))
-    for what, path in (("images", images), ("reference model", reference_sfm),
-                       ("localization pairs", loc_pairs)):
+    for what, path in (
+        ("images", images),
+        ("reference model", reference_sfm),
+        ("localization pairs", loc_pairs),
+    ):
         if not path.exists():
             raise SystemExit(f"{path}: {what} not found (see --help)")
     if not query_lists:
@@ -153,9 +178,18 @@ def run(args) -> dict:
 
     # 1. features
     features = out / f"feats-{args.method}.h5"
-    extract_features(args.method, images, features, {**db_cams, **q_cams}, out,
-                     args.depth_model, args.depth_path, args.conf, args.max_num_features,
-                     args.num_workers)
+    extract_features(
+        args.method,
+        images,
+        features,
+        {**db_cams, **q_cams},
+        out,
+        args.depth_model,
+        args.depth_path,
+        args.conf,
+        args.max_num_features,
+        args.num_workers,
+    )
     # 2. pairs
     if args.db_pairs is not None:
         sfm_pairs = args.db_pairs
@@ -165,9 +199,11 @@ def run(args) -> dict:
     else:
         names = sorted(db_cams)
         sfm_pairs = out / "pairs-db-exhaustive.txt"
-        write_pair_list(sfm_pairs, [(a, b) for i, a in enumerate(names) for b in names[i + 1:]])
-        logger.info("reference model without 3D points: all %d database pairs",
-                    len(names) * (len(names) - 1) // 2)
+        write_pair_list(sfm_pairs, [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]])
+        logger.info(
+            "reference model without 3D points: all %d database pairs",
+            len(names) * (len(names) - 1) // 2,
+        )
     # 3. matches
     conf = match_features.confs["NN-ratio"]
     sfm_matches = out / "matches-db.h5"
@@ -183,73 +219,139 @@ def run(args) -> dict:
         raise SystemExit(str(e)) from None
     # 5. localization (all query lists together)
     results = out / f"results-{args.method}.txt"
-    localize_sfm.main(rec, dataset / "queries" / "*_time_queries_with_intrinsics.txt",
-                      loc_pairs, features, loc_matches, results,
-                      ransac_thresh=args.ransac_thresh, covisibility_clustering=False)
+    localize_sfm.main(
+        rec,
+        dataset / "queries" / "*_time_queries_with_intrinsics.txt",
+        loc_pairs,
+        features,
+        loc_matches,
+        results,
+        ransac_thresh=args.ransac_thresh,
+        covisibility_clustering=False,
+    )
     n, missing = A.check_results(results, list(q_cams))
     fallbacks = A.localize_sfm_fallbacks(results)
     if fallbacks:
-        logger.warning("%d of %d queries NOT localized: localize_sfm wrote the pose of their "
-                       "first retrieved image (%s%s)", len(fallbacks), len(q_cams),
-                       ", ".join(fallbacks[:5]), "..." if len(fallbacks) > 5 else "")
-    summary = {"method": args.method, "features": str(features), "results": str(results),
-               "database_images": len(db_cams), "queries": len(q_cams),
-               "registered_images": rec.num_reg_images(), "points3D": rec.num_points3D(),
-               "result_lines": n, "missing": missing, "not_localized": fallbacks}
+        logger.warning(
+            "%d of %d queries NOT localized: localize_sfm wrote the pose of their "
+            "first retrieved image (%s%s)",
+            len(fallbacks),
+            len(q_cams),
+            ", ".join(fallbacks[:5]),
+            "..." if len(fallbacks) > 5 else "",
+        )
+    summary = {
+        "method": args.method,
+        "features": str(features),
+        "results": str(results),
+        "database_images": len(db_cams),
+        "queries": len(q_cams),
+        "registered_images": rec.num_reg_images(),
+        "points3D": rec.num_points3D(),
+        "result_lines": n,
+        "missing": missing,
+        "not_localized": fallbacks,
+    }
     gt = dataset / "ground_truth.txt"
     if gt.is_file():
         errors = A.localization_errors(results, gt)
         thresholds = ((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))
         summary["errors_m_deg"] = errors
-        summary["recall"] = dict(zip([f"{d:g}m,{a:g}deg" for d, a in thresholds],
-                                     A.recall(errors, thresholds, fallbacks)))
+        summary["recall"] = dict(
+            zip(
+                [f"{d:g}m,{a:g}deg" for d, a in thresholds], A.recall(errors, thresholds, fallbacks)
+            )
+        )
         for name, (dt, dr) in sorted(errors.items()):
-            logger.info("%s: %.3f m, %.3f deg%s", name, dt, dr,
-                        " (NOT localized: fallback pose)" if name in
-                        {f.split("/")[-1] for f in fallbacks} else "")
+            logger.info(
+                "%s: %.3f m, %.3f deg%s",
+                name,
+                dt,
+                dr,
+                " (NOT localized: fallback pose)"
+                if name in {f.split("/")[-1] for f in fallbacks}
+                else "",
+            )
         logger.info("recall %s", summary["recall"])
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    logger.info("%s: %d queries in the result file, %d missing, %d not localized",
-                results, n, len(missing), len(fallbacks))
+    logger.info(
+        "%s: %d queries in the result file, %d missing, %d not localized",
+        results,
+        n,
+        len(missing),
+        len(fallbacks),
+    )
     return summary
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--dataset", type=Path, required=True,
-                   help="Aachen-layout folder: images/images_upright, queries/ "
-                        "(written first with --make_mini_from)")
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--dataset",
+        type=Path,
+        required=True,
+        help="Aachen-layout folder: images/images_upright, queries/ "
+        "(written first with --make_mini_from)",
+    )
     p.add_argument("--outputs", type=Path, required=True)
-    p.add_argument("--reference_sfm", type=Path,
-                   help="COLMAP model with the database poses (v1.1: 3D-models/aachen_v_1_1; "
-                        "v1.0: convert the NVM with hloc.colmap_from_nvm first). Default: "
-                        "DATASET/3D-models/reference (mini Aachen)")
-    p.add_argument("--loc_pairs", type=Path,
-                   help="query-database retrieval pairs (e.g. pairs-query-netvlad50.txt). "
-                        "Default: DATASET/pairs-query-exhaustive.txt (mini Aachen)")
-    p.add_argument("--db_pairs", type=Path,
-                   help="database pairs (default: covisibility in the reference model)")
+    p.add_argument(
+        "--reference_sfm",
+        type=Path,
+        help="COLMAP model with the database poses (v1.1: 3D-models/aachen_v_1_1; "
+        "v1.0: convert the NVM with hloc.colmap_from_nvm first). Default: "
+        "DATASET/3D-models/reference (mini Aachen)",
+    )
+    p.add_argument(
+        "--loc_pairs",
+        type=Path,
+        help="query-database retrieval pairs (e.g. pairs-query-netvlad50.txt). "
+        "Default: DATASET/pairs-query-exhaustive.txt (mini Aachen)",
+    )
+    p.add_argument(
+        "--db_pairs",
+        type=Path,
+        help="database pairs (default: covisibility in the reference model)",
+    )
     p.add_argument("--num_covis", type=int, default=20)
-    p.add_argument("--method", choices=METHODS, default="rectsift",
-                   help="rectsift (this tool), sift (this tool's plain SIFT, no depth), "
-                        "hloc-sift (hloc's own DoG extractor, conf 'sift')")
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default="rectsift",
+        help="rectsift (this tool), sift (this tool's plain SIFT, no depth), "
+        "hloc-sift (hloc's own DoG extractor, conf 'sift')",
+    )
     p.add_argument("--depth_model", default=None, help="depth network (registry name/.onnx)")
     p.add_argument("--depth_path", type=Path, help="folder of depth maps instead")
-    p.add_argument("--conf", default=None,
-                   help="extraction configuration: a name of rectified_colmap.config.confs or "
-                        "a JSON file of overrides")
+    p.add_argument(
+        "--conf",
+        default=None,
+        help="extraction configuration: a name of rectified_colmap.config.confs or "
+        "a JSON file of overrides",
+    )
     p.add_argument("--max_num_features", type=int, default=None)
     p.add_argument("--num_workers", type=int, default=4)
     p.add_argument("--ransac_thresh", type=float, default=12.0)
-    p.add_argument("--make_mini_from", type=Path,
-                   help="first build a mini Aachen in --dataset from a posed scene "
-                        "(images/ + sparse/, e.g. a Strecha scene; every third image, from "
-                        "the second, is a held-out query with ground truth)")
-    p.add_argument("--max_size", type=int, default=None,
-                   help="with --make_mini_from: downscale images (and cameras) to this size")
-    p.add_argument("--num_queries", type=int, default=None,
-                   help="with --make_mini_from: keep only the first N held-out queries")
+    p.add_argument(
+        "--make_mini_from",
+        type=Path,
+        help="first build a mini Aachen in --dataset from a posed scene "
+        "(images/ + sparse/, e.g. a Strecha scene; every third image, from "
+        "the second, is a held-out query with ground truth)",
+    )
+    p.add_argument(
+        "--max_size",
+        type=int,
+        default=None,
+        help="with --make_mini_from: downscale images (and cameras) to this size",
+    )
+    p.add_argument(
+        "--num_queries",
+        type=int,
+        default=None,
+        help="with --make_mini_from: keep only the first N held-out queries",
+    )
     return p
 
 

@@ -61,8 +61,7 @@ def run_measured(cmd: list[str], env: dict | None = None) -> dict:
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise RuntimeError(f"{cmd[0]} failed ({proc.returncode}):\n{out.decode()[-3000:]}")
-    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime,
-            "peak_MB": usage.ru_maxrss / 1024}
+    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "peak_MB": usage.ru_maxrss / 1024}
 
 
 def keypoints_per_image(database: Path) -> float:
@@ -94,8 +93,11 @@ def prepare_images(args, folder: Path) -> list[str]:
         if args.resize:
             w, h = (int(v) for v in args.resize.split("x"))
             img = cv2.imread(str(Path(args.image_path) / name), cv2.IMREAD_COLOR)
-            cv2.imwrite(str(folder / name), cv2.resize(img, (w, h), interpolation=cv2.INTER_CUBIC),
-                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+            cv2.imwrite(
+                str(folder / name),
+                cv2.resize(img, (w, h), interpolation=cv2.INTER_CUBIC),
+                [cv2.IMWRITE_JPEG_QUALITY, 95],
+            )
         else:
             shutil.copy(Path(args.image_path) / name, folder / name)
     return names
@@ -109,13 +111,20 @@ def main(argv=None):
     p.add_argument("--synthetic", type=int, default=0, help="render N street views instead")
     p.add_argument("--size", default="1536x1024", help="rendered image size WxH")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--camera_params", help="passed to rectified-colmap (PINHOLE fx,fy,cx,cy "
-                   "of the original size; scaled with --resize)")
+    p.add_argument(
+        "--camera_params",
+        help="passed to rectified-colmap (PINHOLE fx,fy,cx,cy "
+        "of the original size; scaled with --resize)",
+    )
     p.add_argument("--max_num_features", type=int, default=8192)
     p.add_argument("--conf", help="--conf of rectified-colmap (default: its default)")
     p.add_argument("--orientation", help="--orientation of rectified-colmap")
-    p.add_argument("--methods", nargs="+", default=["pycolmap", "colmap", "rectified"],
-                   choices=["pycolmap", "colmap", "rectified"])
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=["pycolmap", "colmap", "rectified"],
+        choices=["pycolmap", "colmap", "rectified"],
+    )
     args = p.parse_args(argv)
     if not args.synthetic and args.image_path is None:
         p.error("--image_path or --synthetic")
@@ -130,21 +139,45 @@ def main(argv=None):
         n = args.max_num_features
         cmds = {
             "pycolmap": [sys.executable, "-c", PLAIN, None, str(images), str(n), ",".join(names)],
-            "colmap": ["colmap", "feature_extractor", "--database_path", None, "--image_path",
-                       str(images), "--SiftExtraction.use_gpu", "0",
-                       "--SiftExtraction.num_threads", "1",
-                       "--SiftExtraction.max_num_features", str(n)],
-            "rectified": ["rectified-colmap", "extract", "--database", None, "--image_path",
-                          str(images), "--max_num_features", str(n), "--no_progress"],
+            "colmap": [
+                "colmap",
+                "feature_extractor",
+                "--database_path",
+                None,
+                "--image_path",
+                str(images),
+                "--SiftExtraction.use_gpu",
+                "0",
+                "--SiftExtraction.num_threads",
+                "1",
+                "--SiftExtraction.max_num_features",
+                str(n),
+            ],
+            "rectified": [
+                "rectified-colmap",
+                "extract",
+                "--database",
+                None,
+                "--image_path",
+                str(images),
+                "--max_num_features",
+                str(n),
+                "--no_progress",
+            ],
         }
         if args.camera_params:
             params = [float(v) for v in args.camera_params.split(",")]
             if args.resize and args.image_path:
-                w0, _ = cv2.imread(str(Path(args.image_path) / names[0]),
-                                   cv2.IMREAD_GRAYSCALE).shape[::-1]
+                w0, _ = cv2.imread(
+                    str(Path(args.image_path) / names[0]), cv2.IMREAD_GRAYSCALE
+                ).shape[::-1]
                 params = [v * size[0] / w0 for v in params]
-            cmds["rectified"] += ["--camera_model", "PINHOLE",
-                                  "--camera_params", ",".join(f"{v:.6g}" for v in params)]
+            cmds["rectified"] += [
+                "--camera_model",
+                "PINHOLE",
+                "--camera_params",
+                ",".join(f"{v:.6g}" for v in params),
+            ]
         for flag in ("conf", "orientation"):
             if getattr(args, flag):
                 cmds["rectified"] += [f"--{flag}", getattr(args, flag)]
@@ -165,16 +198,20 @@ def main(argv=None):
     with open("/proc/loadavg") as f:
         load = f.read().split()[0]
     print(f"\n{what}, {size[0]}x{size[1]}, budget {n}; load average at end {load}\n")
-    print("| method | CPU s / image | wall s / image | CPU ratio | wall ratio | peak MB "
-          "| keypoints / image |")
+    print(
+        "| method | CPU s / image | wall s / image | CPU ratio | wall ratio | peak MB "
+        "| keypoints / image |"
+    )
     print("|---|---|---|---|---|---|---|")
     base = rows.get("pycolmap")
     k = len(names)
     for method, r in rows.items():
         cpu_ratio = f"{r['cpu'] / base['cpu']:.2f}x" if base else "-"
         wall_ratio = f"{r['wall'] / base['wall']:.2f}x" if base else "-"
-        print(f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} "
-              f"| {wall_ratio} | {r['peak_MB']:.0f} | {r['kp']:.0f} |")
+        print(
+            f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} "
+            f"| {wall_ratio} | {r['peak_MB']:.0f} | {r['kp']:.0f} |"
+        )
 
 
 if __name__ == "__main__":

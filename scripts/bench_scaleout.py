@@ -21,9 +21,13 @@ from pathlib import Path
 def features(db: Path) -> dict:
     con = sqlite3.connect(db)
     try:
-        return {r[0]: r[1:] for r in con.execute(
-            "SELECT i.name, k.data, d.data FROM images i JOIN keypoints k USING(image_id) "
-            "JOIN descriptors d USING(image_id)")}
+        return {
+            r[0]: r[1:]
+            for r in con.execute(
+                "SELECT i.name, k.data, d.data FROM images i JOIN keypoints k USING(image_id) "
+                "JOIN descriptors d USING(image_id)"
+            )
+        }
     finally:
         con.close()
 
@@ -47,8 +51,11 @@ def main() -> None:
 
         images = args.out / "images"
         _, camera, _ = render_walk(images, num_images=args.render)
-        kw = dict(camera_model="PINHOLE", single_camera=True,
-                  camera_params=",".join(map(str, camera.params)))
+        kw = dict(
+            camera_model="PINHOLE",
+            single_camera=True,
+            camera_params=",".join(map(str, camera.params)),
+        )
     else:
         images = args.images
     names = list_images(images)[: args.num_images]
@@ -62,16 +69,29 @@ def main() -> None:
 
             work = 0.0
             for i in range(workers):  # one after the other: each shard's own throughput
-                s = extract(images, database=out / f"s{i}.db", image_list=names,
-                            shard=(i, workers), progress=False, **kw)
+                s = extract(
+                    images,
+                    database=out / f"s{i}.db",
+                    image_list=names,
+                    shard=(i, workers),
+                    progress=False,
+                    **kw,
+                )
                 work = max(work, s.work_seconds)
-            merge_databases(out / "db.db", [out / f"s{i}.db" for i in range(workers)],
-                            single_camera=bool(kw))
+            merge_databases(
+                out / "db.db", [out / f"s{i}.db" for i in range(workers)], single_camera=bool(kw)
+            )
             ips = len(names) / work  # shards run side by side on separate machines
         else:
-            s = extract(images, database=out / "db.db", image_list=names, progress=False,
-                        num_workers=workers, ray_address="local" if "ray" in config else None,
-                        **kw)
+            s = extract(
+                images,
+                database=out / "db.db",
+                image_list=names,
+                progress=False,
+                num_workers=workers,
+                ray_address="local" if "ray" in config else None,
+                **kw,
+            )
             assert s.ok, s.report()
             ips = len(s.done) / s.work_seconds
         wall = time.perf_counter() - t0
@@ -84,8 +104,11 @@ def main() -> None:
     print("| run | workers | images/s while extracting | whole command (s) | outputs identical |")
     print("|---|---|---|---|---|")
     for config, ips, wall, same in rows:
-        kind = {"local": "local processes", "ray": "Ray, local instance",
-                "shards": "shards (largest shard; run side by side)"}[config.rstrip("0123456789")]
+        kind = {
+            "local": "local processes",
+            "ray": "Ray, local instance",
+            "shards": "shards (largest shard; run side by side)",
+        }[config.rstrip("0123456789")]
         print(f"| {kind} | {config[-1]} | {ips:.2f} | {wall:.1f} | {'yes' if same else 'NO'} |")
 
 

@@ -31,8 +31,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rectified_colmap.camera import make_camera  # noqa: E402
 from rectified_colmap.config import VpConf  # noqa: E402
 from rectified_colmap.synth.lines import axis_errors_deg, render_street, rot, street_camera  # noqa: E402
-from rectified_colmap.vp import (draw_directions, draw_segments, manhattan_from_image,  # noqa
-                                 refine_directions, save_png)
+from rectified_colmap.vp import (
+    draw_directions,
+    draw_segments,
+    manhattan_from_image,  # noqa
+    refine_directions,
+    save_png,
+)
 
 
 def synthetic(conf: VpConf, num: int = 40, clutter: float = 0.3, lines: bool = True):
@@ -53,11 +58,14 @@ def synthetic(conf: VpConf, num: int = 40, clutter: float = 0.3, lines: bool = T
         contra.append(res.contradicted.sum())
     b, a = np.concatenate(before), np.concatenate(after)
     worse = float(np.mean(np.array(after).max(1) > np.array(before).max(1) + 1.0))
-    return dict(before=np.percentile(b, [50, 90]).round(2), after=np.percentile(a, [50, 90, 100])
-                .round(2), mean_snapped=np.mean(snapped).round(2),
-                frac_scenes_all3_snapped=float(np.mean(np.array(snapped) == 3)),
-                frac_scenes_worse_by_1deg=worse,
-                mean_contradicted=np.mean(contra).round(2))
+    return dict(
+        before=np.percentile(b, [50, 90]).round(2),
+        after=np.percentile(a, [50, 90, 100]).round(2),
+        mean_snapped=np.mean(snapped).round(2),
+        frac_scenes_all3_snapped=float(np.mean(np.array(snapped) == 3)),
+        frac_scenes_worse_by_1deg=worse,
+        mean_contradicted=np.mean(contra).round(2),
+    )
 
 
 def render_clutter(camera, rng, n=250):
@@ -99,10 +107,13 @@ def strecha(scene: Path, conf: VpConf, viz: Path | None):
             frames.append((res.frame @ Rcw, conf_axes, res.manhattan.sigma_deg))
         names.append(img.name)
         if viz is not None:
-            save_png(viz / f"{scene.name}_{Path(img.name).stem}.segments.png",
-                     draw_segments(gray, res))
-            save_png(viz / f"{scene.name}_{Path(img.name).stem}.directions.png",
-                     draw_directions(gray, camera, res))
+            save_png(
+                viz / f"{scene.name}_{Path(img.name).stem}.segments.png", draw_segments(gray, res)
+            )
+            save_png(
+                viz / f"{scene.name}_{Path(img.name).stem}.directions.png",
+                draw_directions(gray, camera, res),
+            )
     # pairwise: for each confident axis of image i, angle to the nearest axis of image j
     ang = []
     for i, fi in enumerate(frames):
@@ -119,12 +130,15 @@ def strecha(scene: Path, conf: VpConf, viz: Path | None):
     ang = np.array(ang)
     num_conf = [0 if f is None else int(f[1].sum()) for f in frames]
     sig = [np.round(f[2], 2).tolist() if f is not None else None for f in frames]
-    return dict(images=len(frames), confident_axes=num_conf,
-                pair_axis_angle_median=float(np.median(ang)) if len(ang) else None,
-                pair_axis_angle_p90=float(np.percentile(ang, 90)) if len(ang) else None,
-                frac_under_1deg=float((ang < 1).mean()) if len(ang) else None,
-                frac_under_2deg=float((ang < 2).mean()) if len(ang) else None,
-                sigma_deg=sig)
+    return dict(
+        images=len(frames),
+        confident_axes=num_conf,
+        pair_axis_angle_median=float(np.median(ang)) if len(ang) else None,
+        pair_axis_angle_p90=float(np.percentile(ang, 90)) if len(ang) else None,
+        frac_under_1deg=float((ang < 1).mean()) if len(ang) else None,
+        frac_under_2deg=float((ang < 2).mean()) if len(ang) else None,
+        sigma_deg=sig,
+    )
 
 
 def _trust_sets(data: Path, num_textures: int):
@@ -140,8 +154,13 @@ def _trust_sets(data: Path, num_textures: int):
         for i, eye in enumerate(eyes):
             for mpt in (0.01, 0.02):
                 R, t = look_at(eye, [0, 0, 0])
-                yield "blob texture", f"{seed}/{i}/{mpt}", plane_view(tex, mpt, K, R, t,
-                                                                     (400, 300))[0], cam, None
+                yield (
+                    "blob texture",
+                    f"{seed}/{i}/{mpt}",
+                    plane_view(tex, mpt, K, R, t, (400, 300))[0],
+                    cam,
+                    None,
+                )
     camera = synth.pinhole_camera(480, 360, 0.9 * 480)
     for seed in range(6):
         rng = np.random.default_rng(100 + seed)
@@ -151,22 +170,26 @@ def _trust_sets(data: Path, num_textures: int):
             yield "rubble", f"{seed}/{j}", cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY), camera, None
     for seed in range(12):
         rng = np.random.default_rng(seed)
-        tex = data / "textures" / "facades" if (data / "textures" / "facades").is_dir() \
-            else None
+        tex = data / "textures" / "facades" if (data / "textures" / "facades").is_dir() else None
         scene = synth.street(rng, texture_dir=tex)
         target = ("facade", "ground")[seed % 2]
-        for j, pose in enumerate(synth.view_pair(scene, rng, 50, 90, target=target,
-                                                 camera=camera)[:2]):
+        for j, pose in enumerate(
+            synth.view_pair(scene, rng, 50, 90, target=target, camera=camera)[:2]
+        ):
             r = synth.render(scene, camera, pose)
             G = np.asarray(pose.rotation.matrix()).T.copy()
-            yield f"streets ({target})", f"{seed}/{j}", cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY), \
-                camera, G
+            yield (
+                f"streets ({target})",
+                f"{seed}/{j}",
+                cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY),
+                camera,
+                G,
+            )
     for scene in sorted((data / "data" / "strecha-dev").glob("*/sparse")):
         rec = pycolmap.Reconstruction(str(scene))
         for im in sorted(rec.images.values(), key=lambda i: i.name):
             gray = cv2.imread(str(scene.parent / "images" / im.name), cv2.IMREAD_GRAYSCALE)
-            yield "Strecha", f"{scene.parent.name}/{im.name}", gray, rec.cameras[im.camera_id], \
-                None
+            yield "Strecha", f"{scene.parent.name}/{im.name}", gray, rec.cameras[im.camera_id], None
     evd = data / "data" / "evd-dev"
     if (evd / "pairs.json").exists():
         for q in json.loads((evd / "pairs.json").read_text()):
@@ -174,8 +197,7 @@ def _trust_sets(data: Path, num_textures: int):
                 gray = cv2.imread(str(evd / q[key]), cv2.IMREAD_GRAYSCALE)
                 h, w = gray.shape
                 f = 1.2 * max(w, h)  # the guess of scripts/eval_homography.py
-                yield "EVD", q[key], gray, make_camera("PINHOLE", [f, f, w / 2, h / 2], w, h), \
-                    None
+                yield "EVD", q[key], gray, make_camera("PINHOLE", [f, f, w / 2, h / 2], w, h), None
     for sub in ("yorkurban", "yorkurban-indoor"):
         root = data / "data" / "real-pool" / sub
         if not (root / "cameras.json").exists():
@@ -183,8 +205,9 @@ def _trust_sets(data: Path, num_textures: int):
         gt = json.loads((root / "gt" / "gt_vps.json").read_text())["images"]
         for name, c in sorted(json.loads((root / "cameras.json").read_text()).items()):
             gray = cv2.imread(str(root / "images" / name), cv2.IMREAD_GRAYSCALE)
-            camera = make_camera("PINHOLE", [c["focal_px"], c["focal_px"], c["cx"], c["cy"]],
-                                 c["width"], c["height"])
+            camera = make_camera(
+                "PINHOLE", [c["focal_px"], c["focal_px"], c["cx"], c["cy"]], c["width"], c["height"]
+            )
             g = gt.get(Path(name).stem)
             G = None
             if g is not None:  # columns = VPs, camera frame with y UP
@@ -204,23 +227,29 @@ def trust(data: Path, confs: dict[str, VpConf], num_textures: int = 30) -> str:
             err = []
             if G is not None and mf.frame is not None and trusted.any():
                 G = G / np.linalg.norm(G, axis=1, keepdims=True)
-                err = np.degrees(np.arccos(np.clip(np.abs(mf.frame[trusted] @ G.T).max(1),
-                                                   0, 1))).tolist()
+                err = np.degrees(
+                    np.arccos(np.clip(np.abs(mf.frame[trusted] @ G.T).max(1), 0, 1))
+                ).tolist()
             nfa = np.sort(mf.log10_nfa)[:2] if mf.frame is not None else np.full(2, np.inf)
             rows.setdefault((set_name, cname), []).append((int(trusted.sum()), err, nfa))
-    out = ["| images | conf | n | >= 1 trusted axis | >= 2 | trusted axes / image | "
-           "GT error of trusted axes median / p90 / max (deg) | log10 NFA, first axis: min / "
-           "median / max | second axis: min / median / max |", "|---" * 9 + "|"]
+    out = [
+        "| images | conf | n | >= 1 trusted axis | >= 2 | trusted axes / image | "
+        "GT error of trusted axes median / p90 / max (deg) | log10 NFA, first axis: min / "
+        "median / max | second axis: min / median / max |",
+        "|---" * 9 + "|",
+    ]
     for (set_name, cname), r in rows.items():
         n = np.array([a for a, _, _ in r])
         err = np.concatenate([e for _, e, _ in r]) if any(e for _, e, _ in r) else np.zeros(0)
-        e = " / ".join(f"{v:.2f}" for v in np.percentile(err, [50, 90, 100])) if len(err) \
-            else "-"
+        e = " / ".join(f"{v:.2f}" for v in np.percentile(err, [50, 90, 100])) if len(err) else "-"
         nfa = np.array([x for _, _, x in r])
-        q = [" / ".join(f"{v:.1f}" for v in np.percentile(nfa[:, i], [0, 50, 100]))
-             for i in range(2)]
-        out.append(f"| {set_name} | {cname} | {len(n)} | {(n >= 1).sum()} | {(n >= 2).sum()} | "
-                   f"{n.mean():.2f} | {e} | {q[0]} | {q[1]} |")
+        q = [
+            " / ".join(f"{v:.1f}" for v in np.percentile(nfa[:, i], [0, 50, 100])) for i in range(2)
+        ]
+        out.append(
+            f"| {set_name} | {cname} | {len(n)} | {(n >= 1).sum()} | {(n >= 2).sum()} | "
+            f"{n.mean():.2f} | {e} | {q[0]} | {q[1]} |"
+        )
     return "\n".join(out)
 
 
@@ -229,17 +258,24 @@ def main():
     ap.add_argument("strecha", type=Path)
     ap.add_argument("--viz", type=Path)
     ap.add_argument("--skip-synth", action="store_true")
-    ap.add_argument("--trust", action="store_true",
-                    help="only the trust table (section 4); data = the folder above "
-                         "strecha's (.../shared)")
+    ap.add_argument(
+        "--trust",
+        action="store_true",
+        help="only the trust table (section 4); data = the folder above strecha's (.../shared)",
+    )
     ap.add_argument("--num_textures", type=int, default=30)
     args = ap.parse_args()
     cv2.setNumThreads(1)
     conf = VpConf()
     if args.trust:
         shared = args.strecha.resolve().parents[1]
-        print(trust(shared, {"no chance test": VpConf(max_log10_nfa=np.inf),
-                             "default": conf}, args.num_textures))
+        print(
+            trust(
+                shared,
+                {"no chance test": VpConf(max_log10_nfa=np.inf), "default": conf},
+                args.num_textures,
+            )
+        )
         return
     if not args.skip_synth:
         for clutter in (0.3, 0.6):
@@ -249,8 +285,10 @@ def main():
     rec = pycolmap.Reconstruction(str(scenes[0] / "sparse"))
     img = sorted(rec.images.values(), key=lambda i: i.name)[0]
     t = timing(scenes[0] / "images" / img.name, rec.cameras[img.camera_id], conf)
-    print(f"refine_directions on 1536x1024: {t[0] * 1000:.1f} ms median, {t[1] * 1000:.1f} ms "
-          "min of 7")
+    print(
+        f"refine_directions on 1536x1024: {t[0] * 1000:.1f} ms median, {t[1] * 1000:.1f} ms "
+        "min of 7"
+    )
     for scene in scenes:
         print(scene.name, strecha(scene, conf, args.viz))
 

@@ -50,11 +50,23 @@ from rectified_colmap.extract import list_images, read_image  # noqa: E402
 from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
 from rectified_colmap.pipeline import extract_image  # noqa: E402
 
-STAGES = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches",
-          "dedup"]
-COLUMNS = STAGES + ["other", "rect_total", "plain_cold", "plain_sift", "ratio", "asift",
-                    "rect_wall", "plain_wall", "kp_rect", "kp_plain", "patches", "rect_MB",
-                    "plain_MB", "rss_MB"]
+STAGES = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches", "dedup"]
+COLUMNS = STAGES + [
+    "other",
+    "rect_total",
+    "plain_cold",
+    "plain_sift",
+    "ratio",
+    "asift",
+    "rect_wall",
+    "plain_wall",
+    "kp_rect",
+    "kp_plain",
+    "patches",
+    "rect_MB",
+    "plain_MB",
+    "rss_MB",
+]
 
 
 def memory_mb(field: str = "VmRSS") -> float:
@@ -105,9 +117,9 @@ def folder_inputs(args):
         rgb = read_image(args.image_path / name)
         h, w = rgb.shape[:2]
         if args.camera_params:
-            camera = cam_utils.make_camera(args.camera_model,
-                                           cam_utils.parse_camera_params(args.camera_params),
-                                           w, h)
+            camera = cam_utils.make_camera(
+                args.camera_model, cam_utils.parse_camera_params(args.camera_params), w, h
+            )
         else:
             camera, _ = cam_utils.infer_camera(args.image_path / name)
         if args.resize:
@@ -138,8 +150,9 @@ def with_depth(inputs):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--image_path", type=Path)
     p.add_argument("--image_list", type=Path)
     p.add_argument("--depth_path", type=Path)
@@ -147,23 +160,40 @@ def main(argv=None) -> int:
     p.add_argument("--camera_model", default="PINHOLE")
     p.add_argument("--camera_params", help="for the images' own size (rescaled with --resize)")
     p.add_argument("--max_images", type=int, default=5)
-    p.add_argument("--repeat", type=int, default=1,
-                   help="go over the images N times (resident memory over many images)")
+    p.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="go over the images N times (resident memory over many images)",
+    )
     p.add_argument("--resize", help="resize photos to WxH first (e.g. 6000x4000)")
     p.add_argument("--synthetic", type=int, default=0, help="render N street scenes instead")
     p.add_argument("--size", default="1536x1024", help="synthetic image size WxH")
     p.add_argument("--conf", default="rectsift", choices=sorted(confs))
-    p.add_argument("--coarse_first", action="store_true",
-                   help="coarse_first SIFT in every part of rectified SIFT, whatever the image "
-                        "size (default: sift.coarse_first where it pays, see config.py)")
-    p.add_argument("--exact_sift", action="store_true",
-                   help="exact COLMAP calls in every part (sift.coarse_first off)")
-    p.add_argument("--retain_memory", action="store_true",
-                   help="features.retain_freed_memory() first (both methods)")
+    p.add_argument(
+        "--coarse_first",
+        action="store_true",
+        help="coarse_first SIFT in every part of rectified SIFT, whatever the image "
+        "size (default: sift.coarse_first where it pays, see config.py)",
+    )
+    p.add_argument(
+        "--exact_sift",
+        action="store_true",
+        help="exact COLMAP calls in every part (sift.coarse_first off)",
+    )
+    p.add_argument(
+        "--retain_memory",
+        action="store_true",
+        help="features.retain_freed_memory() first (both methods)",
+    )
     p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
     p.add_argument("--no_asift", action="store_true", help="skip the (slow) ASIFT anchor")
-    p.add_argument("--clock", choices=["cpu", "wall"], default="cpu",
-                   help="CPU seconds of this process (default) or wall seconds")
+    p.add_argument(
+        "--clock",
+        choices=["cpu", "wall"],
+        default="cpu",
+        help="CPU seconds of this process (default) or wall seconds",
+    )
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     cv2.setNumThreads(1)
@@ -191,12 +221,14 @@ def main(argv=None) -> int:
     else:
         p.error("give --image_path or --synthetic N")
 
-    print(f"# clock: {args.clock}; load average at start: {os.getloadavg()[0]:.2f}; "
-          f"RSS {memory_mb():.0f} MB; "
-          f"coarse_first={conf.sift.coarse_first} "
-          f"(>= {conf.sift.coarse_first_pixels_per_feature:g} px/feature); "
-          f"retain_memory={args.retain_memory}; "
-          f"patch_first_octave={conf.sift.patch_first_octave}")
+    print(
+        f"# clock: {args.clock}; load average at start: {os.getloadavg()[0]:.2f}; "
+        f"RSS {memory_mb():.0f} MB; "
+        f"coarse_first={conf.sift.coarse_first} "
+        f"(>= {conf.sift.coarse_first_pixels_per_feature:g} px/feature); "
+        f"retain_memory={args.retain_memory}; "
+        f"patch_first_octave={conf.sift.patch_first_octave}"
+    )
     rows = []
     print("| image | WxH | " + " | ".join(COLUMNS) + " |")
     print("|" + "---|" * (len(COLUMNS) + 2))
@@ -255,8 +287,10 @@ def main(argv=None) -> int:
             mean[c] = max(r[c] for r in rows)
         fmt = [f"{mean[c]:.0f}" if c.endswith("_MB") else f"{mean[c]:.3f}" for c in COLUMNS]
         print(f"| **mean** ({len(rows)}; MB: max) | | " + " | ".join(fmt) + " |")
-        print(f"# load average at end: {os.getloadavg()[0]:.2f}; "
-              f"live SIFT extractors: {features.live_extractors()}")
+        print(
+            f"# load average at end: {os.getloadavg()[0]:.2f}; "
+            f"live SIFT extractors: {features.live_extractors()}"
+        )
     return 0
 
 

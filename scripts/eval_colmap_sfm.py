@@ -93,37 +93,96 @@ def evaluate_scene(scene: Path, method: str, overrides: dict | None, args, out: 
     images = scene / "images"
     n = str(args.max_num_features)
     if method == "sift":
-        t_extract = run(["colmap", "feature_extractor", "--database_path", str(db),
-                         "--image_path", str(images), "--ImageReader.camera_model", "PINHOLE",
-                         "--ImageReader.single_camera", "1", "--ImageReader.camera_params",
-                         params, "--SiftExtraction.use_gpu", "0",
-                         "--SiftExtraction.max_num_features", n], log)
+        t_extract = run(
+            [
+                "colmap",
+                "feature_extractor",
+                "--database_path",
+                str(db),
+                "--image_path",
+                str(images),
+                "--ImageReader.camera_model",
+                "PINHOLE",
+                "--ImageReader.single_camera",
+                "1",
+                "--ImageReader.camera_params",
+                params,
+                "--SiftExtraction.use_gpu",
+                "0",
+                "--SiftExtraction.max_num_features",
+                n,
+            ],
+            log,
+        )
     else:
-        cmd = ["rectified-colmap", "extract", "--database", str(db), "--image_path",
-               str(images), "--camera_model", "PINHOLE", "--camera_params", params,
-               "--single_camera", "--max_num_features", n, "--no_progress",
-               "--num_workers", str(args.num_workers)]
+        cmd = [
+            "rectified-colmap",
+            "extract",
+            "--database",
+            str(db),
+            "--image_path",
+            str(images),
+            "--camera_model",
+            "PINHOLE",
+            "--camera_params",
+            params,
+            "--single_camera",
+            "--max_num_features",
+            n,
+            "--no_progress",
+            "--num_workers",
+            str(args.num_workers),
+        ]
         if overrides:
             conf_file = work / "conf.json"
             conf_file.write_text(json.dumps(overrides))
             cmd += ["--conf", str(conf_file)]
         t_extract = run(cmd, log)
-    t_match = run(["colmap", "exhaustive_matcher", "--database_path", str(db),
-                   "--SiftMatching.use_gpu", "0"], log)
-    t_map = run(["colmap", "mapper", "--database_path", str(db), "--image_path", str(images),
-                 "--output_path", str(work / "sparse"), "--Mapper.num_threads", "1"], log)
+    t_match = run(
+        ["colmap", "exhaustive_matcher", "--database_path", str(db), "--SiftMatching.use_gpu", "0"],
+        log,
+    )
+    t_map = run(
+        [
+            "colmap",
+            "mapper",
+            "--database_path",
+            str(db),
+            "--image_path",
+            str(images),
+            "--output_path",
+            str(work / "sparse"),
+            "--Mapper.num_threads",
+            "1",
+        ],
+        log,
+    )
     matches, pairs = verified_matches(db)
     rec = best_model(work / "sparse")
-    row = {"scene": scene.name, "method": method, "images": gt.num_reg_images(),
-           "registered": 0, "points": 0, "track_length": 0.0, "reproj_px": float("nan"),
-           "verified_matches": matches, "verified_pairs": pairs, "rot_err_med_deg": float("nan"),
-           "extract_s": t_extract, "match_s": t_match, "map_s": t_map}
+    row = {
+        "scene": scene.name,
+        "method": method,
+        "images": gt.num_reg_images(),
+        "registered": 0,
+        "points": 0,
+        "track_length": 0.0,
+        "reproj_px": float("nan"),
+        "verified_matches": matches,
+        "verified_pairs": pairs,
+        "rot_err_med_deg": float("nan"),
+        "extract_s": t_extract,
+        "match_s": t_match,
+        "map_s": t_map,
+    }
     if rec is not None:
         errs = rotation_errors(rec, gt)
-        row.update(registered=rec.num_reg_images(), points=rec.num_points3D(),
-                   track_length=rec.compute_mean_track_length(),
-                   reproj_px=rec.compute_mean_reprojection_error(),
-                   rot_err_med_deg=float(np.median(errs)) if len(errs) else float("nan"))
+        row.update(
+            registered=rec.num_reg_images(),
+            points=rec.num_points3D(),
+            track_length=rec.compute_mean_track_length(),
+            reproj_px=rec.compute_mean_reprojection_error(),
+            rot_err_med_deg=float(np.median(errs)) if len(errs) else float("nan"),
+        )
     return row
 
 
@@ -132,10 +191,16 @@ def main(argv=None):
     p.add_argument("--data", type=Path, required=True, help="folder of scenes")
     p.add_argument("--output_dir", type=Path, required=True)
     p.add_argument("--scenes", nargs="*")
-    p.add_argument("--methods", nargs="+", default=["sift", "rectsift"],
-                   choices=["sift", "rectsift"])
-    p.add_argument("--variant", action="append", default=[], metavar="NAME=JSON",
-                   help="an extra rectified method with these configuration overrides")
+    p.add_argument(
+        "--methods", nargs="+", default=["sift", "rectsift"], choices=["sift", "rectsift"]
+    )
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=JSON",
+        help="an extra rectified method with these configuration overrides",
+    )
     p.add_argument("--max_num_features", type=int, default=8192)
     p.add_argument("--num_workers", type=int, default=1, help="rectified-colmap workers")
     args = p.parse_args(argv)
@@ -145,25 +210,49 @@ def main(argv=None):
     for v in args.variant:
         name, _, js = v.partition("=")
         methods[name] = json.loads(js)
-    scenes = [args.data / s for s in args.scenes] if args.scenes else sorted(
-        d for d in args.data.iterdir() if (d / "images").is_dir() and (d / "sparse").is_dir())
+    scenes = (
+        [args.data / s for s in args.scenes]
+        if args.scenes
+        else sorted(
+            d for d in args.data.iterdir() if (d / "images").is_dir() and (d / "sparse").is_dir()
+        )
+    )
     args.output_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for scene in scenes:
         for method, overrides in methods.items():
             rows.append(evaluate_scene(scene, method, overrides, args, args.output_dir))
             r = rows[-1]
-            print(f"{scene.name} {method}: {r['registered']}/{r['images']} images, "
-                  f"{r['points']} points, {r['verified_matches']} verified matches",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{scene.name} {method}: {r['registered']}/{r['images']} images, "
+                f"{r['points']} points, {r['verified_matches']} verified matches",
+                file=sys.stderr,
+                flush=True,
+            )
     (args.output_dir / "sfm.json").write_text(json.dumps(rows, indent=1))
-    cols = ["scene", "method", "registered", "points", "track_length", "reproj_px",
-            "verified_matches", "verified_pairs", "rot_err_med_deg", "extract_s"]
+    cols = [
+        "scene",
+        "method",
+        "registered",
+        "points",
+        "track_length",
+        "reproj_px",
+        "verified_matches",
+        "verified_pairs",
+        "rot_err_med_deg",
+        "extract_s",
+    ]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
-        cells = [f"{r[c]}/{r['images']}" if c == "registered" else
-                 f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols]
+        cells = [
+            f"{r[c]}/{r['images']}"
+            if c == "registered"
+            else f"{r[c]:.2f}"
+            if isinstance(r[c], float)
+            else str(r[c])
+            for c in cols
+        ]
         print("| " + " | ".join(cells) + " |")
 
 

@@ -37,10 +37,14 @@ import numpy as np
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.config import ExtractConf
-from rectified_colmap.eval.homography import (HomographyConf, evaluate_homography_pairs,
-                                              homography_markdown,
-                                              plane_normals_from_homography,
-                                              read_homography_pairs, visible_grid)
+from rectified_colmap.eval.homography import (
+    HomographyConf,
+    evaluate_homography_pairs,
+    homography_markdown,
+    plane_normals_from_homography,
+    read_homography_pairs,
+    visible_grid,
+)
 from rectified_colmap.pipeline import extract_image, work_size
 
 logger = logging.getLogger("eval_homography")
@@ -63,8 +67,9 @@ def oracle_normals(pairs, cameras) -> dict[str, np.ndarray]:
     return out
 
 
-def extract_method(method: str, names: list[str], root: Path, cameras, normals, args,
-                   out: Path) -> Path:
+def extract_method(
+    method: str, names: list[str], root: Path, cameras, normals, args, out: Path
+) -> Path:
     from rectified_colmap.io.hloc_h5 import HlocFeatureWriter
 
     h5 = out / "features" / f"{method}.h5"
@@ -102,9 +107,14 @@ def extract_method(method: str, names: list[str], root: Path, cameras, normals, 
                 nmap = np.broadcast_to(normals[name], (h, w, 3)).copy()
             res = extract_image(rgb, cam, depth, conf, np.random.default_rng(0), normals=nmap)
             writer.write(name, res.features, (cam.width, cam.height))
-            logger.info("%s %s: %d keypoints, %d rectified, %d patches", method, name,
-                        len(res.features), int((res.features.patch >= 0).sum()),
-                        len(res.rectifications))
+            logger.info(
+                "%s %s: %d keypoints, %d rectified, %d patches",
+                method,
+                name,
+                len(res.features),
+                int((res.features.patch >= 0).sum()),
+                len(res.rectifications),
+            )
     tmp.rename(h5)
     return h5
 
@@ -114,11 +124,19 @@ def main(argv=None) -> int:
     p.add_argument("--data", type=Path, required=True, help="folder with pairs.json, images/")
     p.add_argument("--output_dir", type=Path, required=True)
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--variant", action="append", default=[], metavar="NAME=JSON",
-                   help="an extra rectsift method with these conf overrides; repeatable")
-    p.add_argument("--depth_model", default=None,
-                   help="registry name, .onnx, or none (no depth: plain SIFT, or lines "
-                        "only with vp.depth_free)")
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=JSON",
+        help="an extra rectsift method with these conf overrides; repeatable",
+    )
+    p.add_argument(
+        "--depth_model",
+        default=None,
+        help="registry name, .onnx, or none (no depth: plain SIFT, or lines "
+        "only with vp.depth_free)",
+    )
     p.add_argument("--rect_conf", default=None, help="JSON conf overrides (rectsift, oracle)")
     p.add_argument("--max_num_features", type=int, default=None)
     p.add_argument("--focal_factor", type=float, default=1.2)
@@ -139,8 +157,7 @@ def main(argv=None) -> int:
     normals = oracle_normals(pairs, cameras)
     out = args.output_dir
     methods = list(args.methods) + list(args.variants)
-    feats = {m: extract_method(m, names, args.data, cameras, normals, args, out)
-             for m in methods}
+    feats = {m: extract_method(m, names, args.data, cameras, normals, args, out) for m in methods}
     conf = HomographyConf()
     records = evaluate_homography_pairs(pairs, feats, conf)
     with open(out / "records.csv", "w", newline="") as f:

@@ -46,8 +46,10 @@ METHODS = ("sift", "rectsift")
 def scene_camera(scene: Path) -> tuple[str, str]:
     """(model, 'p1,p2,...') of the scene's single camera model (all images must share it)."""
     rec = pycolmap.Reconstruction(str(scene / "sparse"))
-    cams = {(c.model.name, tuple(np.round(c.params, 6)), c.width, c.height)
-            for c in rec.cameras.values()}
+    cams = {
+        (c.model.name, tuple(np.round(c.params, 6)), c.width, c.height)
+        for c in rec.cameras.values()
+    }
     if len(cams) != 1:
         raise SystemExit(f"{scene}/sparse: {len(cams)} different cameras; expected one")
     model, params, _, _ = cams.pop()
@@ -73,13 +75,25 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
         conf = {**overrides, "sift": {**overrides.get("sift", {}), **sift}}
         kw = dict(conf=conf, depth_model=depth_model, depth_path=args.depth_path)
     t = time.perf_counter()
-    summary = extract(scene, hloc_features=h5, image_list=names, camera_model=model,
-                      camera_params=params, num_workers=args.num_workers,
-                      progress=not args.no_progress, **kw)
+    summary = extract(
+        scene,
+        hloc_features=h5,
+        image_list=names,
+        camera_model=model,
+        camera_params=params,
+        num_workers=args.num_workers,
+        progress=not args.no_progress,
+        **kw,
+    )
     if not summary.ok:
         raise SystemExit(f"{scene.name}/{method}: extraction failed\n{summary.report()}")
-    logger.info("%s/%s: %s (%.1f s)", scene.name, method, summary.report().splitlines()[1],
-                time.perf_counter() - t)
+    logger.info(
+        "%s/%s: %s (%.1f s)",
+        scene.name,
+        method,
+        summary.report().splitlines()[1],
+        time.perf_counter() - t,
+    )
     return h5
 
 
@@ -91,15 +105,27 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", nargs="*", help="scene names (default: all)")
     p.add_argument("--depth_model", help="depth network for rectsift (registry name or .onnx)")
     p.add_argument("--depth_path", type=Path, help="folder of depth maps for rectsift")
-    p.add_argument("--max_num_features", type=int, default=None,
-                   help="SIFT budget per image for both methods (default 8192)")
-    p.add_argument("--rect_conf", default=None,
-                   help='JSON overrides of the extraction conf for rectsift, e.g. '
-                        '\'{"rectify": {"keep_plain": false}}\'')
-    p.add_argument("--variant", action="append", default=[], metavar="NAME=JSON",
-                   help="an extra rectsift method NAME with these conf overrides (on top of "
-                        "--rect_conf), evaluated beside --methods, e.g. "
-                        "'nodedup={\"dedup\": {\"enabled\": false}}'; repeatable")
+    p.add_argument(
+        "--max_num_features",
+        type=int,
+        default=None,
+        help="SIFT budget per image for both methods (default 8192)",
+    )
+    p.add_argument(
+        "--rect_conf",
+        default=None,
+        help="JSON overrides of the extraction conf for rectsift, e.g. "
+        '\'{"rectify": {"keep_plain": false}}\'',
+    )
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=JSON",
+        help="an extra rectsift method NAME with these conf overrides (on top of "
+        "--rect_conf), evaluated beside --methods, e.g. "
+        '\'nodedup={"dedup": {"enabled": false}}\'; repeatable',
+    )
     p.add_argument("--bin_deg", type=float, default=10.0)
     p.add_argument("--ransac_max_error", type=float, default=None)
     p.add_argument("--num_workers", type=int, default=2)
@@ -129,29 +155,47 @@ def main(argv=None) -> int:
 
     records, loc_rows = [], {}
     for scene in scenes:
-        feats = {m: extract_method(scene, m, out, args)
-                 for m in list(args.methods) + list(args.variants)}
+        feats = {
+            m: extract_method(scene, m, out, args) for m in list(args.methods) + list(args.variants)
+        }
         pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
-        recs = evaluate_pairs(pairs, feats, conf, args.num_workers,
-                              progress=not args.no_progress)
+        recs = evaluate_pairs(pairs, feats, conf, args.num_workers, progress=not args.no_progress)
         for r in recs:
             r["name0"], r["name1"] = f"{scene.name}/{r['name0']}", f"{scene.name}/{r['name1']}"
         records += recs
         if args.localize:
             model = pycolmap.Reconstruction(str(scene / "sparse"))
             for m, h5 in feats.items():
-                res, acc = localize_with_model(model, h5, out / "localize" / scene.name / m,
-                                               holdout_every=3, name_prefix="images/",
-                                               conf=LocalizeConf(), image_dir=scene)
+                res, acc = localize_with_model(
+                    model,
+                    h5,
+                    out / "localize" / scene.name / m,
+                    holdout_every=3,
+                    name_prefix="images/",
+                    conf=LocalizeConf(),
+                    image_dir=scene,
+                )
                 loc_rows[f"{scene.name} {m}"] = (acc, len(res))
-    table = write_outputs(records, out, conf, not args.no_plot,
-                          f"Strecha ({', '.join(s.name for s in scenes)})")
-    text = ["# Strecha results", "", "Command:", "",
-            "    python " + " ".join(shlex.quote(a) for a in [sys.argv[0]] + (argv or sys.argv[1:])),
-            "", "## Relative pose", "", table]
+    table = write_outputs(
+        records, out, conf, not args.no_plot, f"Strecha ({', '.join(s.name for s in scenes)})"
+    )
+    text = [
+        "# Strecha results",
+        "",
+        "Command:",
+        "",
+        "    python " + " ".join(shlex.quote(a) for a in [sys.argv[0]] + (argv or sys.argv[1:])),
+        "",
+        "## Relative pose",
+        "",
+        table,
+    ]
     if loc_rows:
-        loc = accuracy_table({k: v[0] for k, v in loc_rows.items()}, LocalizeConf().thresholds,
-                             {k: v[1] for k, v in loc_rows.items()})
+        loc = accuracy_table(
+            {k: v[0] for k, v in loc_rows.items()},
+            LocalizeConf().thresholds,
+            {k: v[1] for k, v in loc_rows.items()},
+        )
         (out / "localization.md").write_text(loc)
         text += ["## Localization (every third image a query)", "", loc]
     (out / "results.md").write_text("\n".join(text))

@@ -116,14 +116,21 @@ def predict(networks: dict, image: np.ndarray, camera) -> dict[str, tuple[DepthM
 def network_note(rows: dict[str, tuple[str, bool]], networks: dict) -> str:
     from rectified_colmap.depth.registry import sha256_file
 
-    return "Networks (CPU, one thread; s / image includes the network): " + "; ".join(
-        f"{row} = {networks[spec].path} (sha256 {sha256_file(networks[spec].path)[:12]}, "
-        f"resize {networks[spec].spec.resize})" for row, (spec, vp) in rows.items() if not vp
-    ) + "."
+    return (
+        "Networks (CPU, one thread; s / image includes the network): "
+        + "; ".join(
+            f"{row} = {networks[spec].path} (sha256 {sha256_file(networks[spec].path)[:12]}, "
+            f"resize {networks[spec].spec.resize})"
+            for row, (spec, vp) in rows.items()
+            if not vp
+        )
+        + "."
+    )
 
 
-def corrupt_depth(depth: np.ndarray, camera, rng: np.random.Generator,
-                  tilt_deg: tuple[float, float], field: float) -> np.ndarray:
+def corrupt_depth(
+    depth: np.ndarray, camera, rng: np.random.Generator, tilt_deg: tuple[float, float], field: float
+) -> np.ndarray:
     """GT z-depth (H, W), NaN = sky -> a plausible mediocre prediction (module docstring)."""
     H, W = depth.shape
     rays = cam_utils.grid_rays(camera, W, H)
@@ -154,8 +161,14 @@ def patch_errors(planes, gt_normals: np.ndarray) -> list[tuple[float, int]]:
         return []
     h, w = planes.labels.shape
     N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
-    valid = cv2.resize(np.isfinite(gt_normals).all(-1).astype(np.uint8), (w, h),
-                       interpolation=cv2.INTER_NEAREST) > 0
+    valid = (
+        cv2.resize(
+            np.isfinite(gt_normals).all(-1).astype(np.uint8),
+            (w, h),
+            interpolation=cv2.INTER_NEAREST,
+        )
+        > 0
+    )
     out = []
     for p in planes.patches:
         m = p.mask & valid
@@ -166,8 +179,7 @@ def patch_errors(planes, gt_normals: np.ndarray) -> list[tuple[float, int]]:
     return out
 
 
-def patch_precision_recall(planes, gt_normals: np.ndarray, tol_deg: float = 10.0
-                           ) -> np.ndarray:
+def patch_precision_recall(planes, gt_normals: np.ndarray, tol_deg: float = 10.0) -> np.ndarray:
     """(4,) cell counts on the work grid: [patch cells whose GT normal is within tol_deg
     of the patch normal, patch cells with a GT normal (summed over patches: overlapping
     patches count each time), GT-planar cells in some patch of their normal, GT-planar
@@ -176,8 +188,14 @@ def patch_precision_recall(planes, gt_normals: np.ndarray, tol_deg: float = 10.0
         return np.zeros(4)
     h, w = planes.labels.shape
     N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
-    valid = cv2.resize(np.isfinite(gt_normals).all(-1).astype(np.uint8), (w, h),
-                       interpolation=cv2.INTER_NEAREST) > 0
+    valid = (
+        cv2.resize(
+            np.isfinite(gt_normals).all(-1).astype(np.uint8),
+            (w, h),
+            interpolation=cv2.INTER_NEAREST,
+        )
+        > 0
+    )
     cos_t = np.cos(np.deg2rad(tol_deg))
     good, cells, hit = 0, 0, np.zeros((h, w), bool)
     for p in planes.patches:
@@ -197,19 +215,22 @@ def make_pairs(num: int, min_deg: float, max_deg: float, width: int, height: int
         scene = synth.street(rng)
         camera = synth.pinhole_camera(width, height, 0.9 * width)
         try:
-            p0, p1, _ = synth.view_pair(scene, rng, min_deg, max_deg, target=target,
-                                        camera=camera)
+            p0, p1, _ = synth.view_pair(scene, rng, min_deg, max_deg, target=target, camera=camera)
         except (RuntimeError, ValueError):
             continue
         if p0 is None:
             continue
-        pairs.append((target, camera, [synth.render(scene, camera, p) for p in (p0, p1)],
-                      (p0, p1), rng))
+        pairs.append(
+            (target, camera, [synth.render(scene, camera, p) for p in (p0, p1)], (p0, p1), rng)
+        )
     return pairs
 
 
-def confs(max_num_features: int, rows: dict[str, tuple[str, bool]] | None = None,
-          overrides: dict | None = None) -> dict[str, ExtractConf]:
+def confs(
+    max_num_features: int,
+    rows: dict[str, tuple[str, bool]] | None = None,
+    overrides: dict | None = None,
+) -> dict[str, ExtractConf]:
     base = ExtractConf.from_dict(overrides)
     base.sift.max_num_features = max_num_features
     vp = ExtractConf.from_dict(base.to_dict())
@@ -218,19 +239,26 @@ def confs(max_num_features: int, rows: dict[str, tuple[str, bool]] | None = None
     free.vp.depth_free = True
     whole = ExtractConf.from_dict(free.to_dict())
     whole.vp.depth_free_regions = "whole"
-    out = {"rect GT depth": base, "rect corrupted": base, "rect corrupted + VP": vp,
-           "VP only": free, WHOLE: whole}
+    out = {
+        "rect GT depth": base,
+        "rect corrupted": base,
+        "rect corrupted + VP": vp,
+        "VP only": free,
+        WHOLE: whole,
+    }
     out.update({row: vp if vp_on else base for row, (_, vp_on) in (rows or {}).items()})
     return out
 
 
-def depth_for(m: str, gt: np.ndarray, bad: np.ndarray, rows: dict, predicted: dict
-              ) -> tuple[DepthMap | None, float]:
+def depth_for(
+    m: str, gt: np.ndarray, bad: np.ndarray, rows: dict, predicted: dict
+) -> tuple[DepthMap | None, float]:
     """(depth given to method m, seconds spent predicting it)."""
     if m in rows:
         return predicted[rows[m][0]]
-    return {"rect GT depth": DepthMap(gt, "metric"), "VP only": None,
-            WHOLE: None}.get(m, DepthMap(bad, "metric")), 0.0
+    return {"rect GT depth": DepthMap(gt, "metric"), "VP only": None, WHOLE: None}.get(
+        m, DepthMap(bad, "metric")
+    ), 0.0
 
 
 def run(args) -> str:
@@ -239,8 +267,7 @@ def run(args) -> str:
     rows = network_rows(args.depth_model, args.depth_model_vp)
     networks = load_networks(rows)
     methods = tuple(m for m in METHODS if m in args.methods) + tuple(rows)
-    cfs = confs(args.max_num_features, rows,
-                json.loads(args.rect_conf) if args.rect_conf else None)
+    cfs = confs(args.max_num_features, rows, json.loads(args.rect_conf) if args.rect_conf else None)
     eval_conf = EvalConf()
     records, dir_err, patch_err, coverage, nrect, secs = [], {}, {}, {}, {}, {}
     for m in methods:
@@ -261,33 +288,49 @@ def run(args) -> str:
                     res, t_depth = None, 0.0
                 else:
                     depth, t_depth = depth_for(m, r.depth, bad, rows, predicted)
-                    res = extract_image(r.image, camera, depth, cfs[m],
-                                        np.random.default_rng(i))
+                    res = extract_image(r.image, camera, depth, cfs[m], np.random.default_rng(i))
                     f = res.features
                 secs[m].append(time.perf_counter() - ts + t_depth)
                 if res is not None:
-                    dir_err[m].append(direction_errors(res.planes.directions
-                                                       if res.planes else None, gt_axes))
+                    dir_err[m].append(
+                        direction_errors(res.planes.directions if res.planes else None, gt_axes)
+                    )
                     patch_err[m] += patch_errors(res.planes, r.normals)
                     prec_rec[m] += patch_precision_recall(res.planes, r.normals)
                     cov = res.coverage
                     coverage[m].append(0.0 if cov is None else float((cov >= 0).mean()))
                     nrect[m].append(len(res.rectifications))
-                feats[m][name] = {"keypoints": f.keypoints,
-                                  "descriptors": rootsift_unit(f.descriptors).T}
+                feats[m][name] = {
+                    "keypoints": f.keypoints,
+                    "descriptors": rootsift_unit(f.descriptors).T,
+                }
         K = camera.calibration_matrix()
         pair = Pair(f"{i}/0", f"{i}/1", K, K, synth.relative_T(*poses))
-        srcs = {m: FeatureSource({f"{i}/{k}": v for k, v in fm.items()})
-                for m, fm in feats.items()}
+        srcs = {m: FeatureSource({f"{i}/{k}": v for k, v in fm.items()}) for m, fm in feats.items()}
         recs = evaluate_pair(pair, srcs, eval_conf)
         for rec in recs:
             rec["target"] = target
         records += recs
-        logger.info("pair %d (%s, %.0f deg): %s", i, target, pair.rotation_deg,
-                    ", ".join(f"{r['method']} {r['num_correct']}/{r['success']:d}"
-                              for r in recs))
-    text = report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args,
-                  time.perf_counter() - t0, len(pairs), methods)
+        logger.info(
+            "pair %d (%s, %.0f deg): %s",
+            i,
+            target,
+            pair.rotation_deg,
+            ", ".join(f"{r['method']} {r['num_correct']}/{r['success']:d}" for r in recs),
+        )
+    text = report(
+        records,
+        dir_err,
+        patch_err,
+        coverage,
+        nrect,
+        secs,
+        prec_rec,
+        args,
+        time.perf_counter() - t0,
+        len(pairs),
+        methods,
+    )
     if rows:
         text += "\n" + network_note(rows, networks) + "\n\n" + paired_lines(records, rows)
     return text
@@ -297,27 +340,43 @@ def _fmt(x, nd=1):
     return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}f}"
 
 
-def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, seconds,
-           num_pairs, methods=METHODS) -> str:
-    lines = [f"Rendered street pairs: {num_pairs} ({args.width}x{args.height}, "
-             f"{args.min_deg:.0f}-{args.max_deg:.0f} deg apart, facade/ground alternating), "
-             f"corrupted depth: normal tilt {args.tilt_deg[0]:.0f}-{args.tilt_deg[1]:.0f} deg at "
-             f"the median distance + low-frequency field +-{100 * args.field:.0f}%; "
-             f"SIFT budget {args.max_num_features}. {seconds:.0f} s.", "",
-             "| method | directions found (images) | direction error median / p90 (deg) | "
-             "patch-normal error median / p90 (deg, area-weighted) | "
-             "patch precision / recall % (GT normal within 10 deg) | rectified area % | "
-             "pose success (R err < 5 deg) | GT-correct matches (total / median) | "
-             "keypoints / image (median) | s / image (median) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+def report(
+    records,
+    dir_err,
+    patch_err,
+    coverage,
+    nrect,
+    secs,
+    prec_rec,
+    args,
+    seconds,
+    num_pairs,
+    methods=METHODS,
+) -> str:
+    lines = [
+        f"Rendered street pairs: {num_pairs} ({args.width}x{args.height}, "
+        f"{args.min_deg:.0f}-{args.max_deg:.0f} deg apart, facade/ground alternating), "
+        f"corrupted depth: normal tilt {args.tilt_deg[0]:.0f}-{args.tilt_deg[1]:.0f} deg at "
+        f"the median distance + low-frequency field +-{100 * args.field:.0f}%; "
+        f"SIFT budget {args.max_num_features}. {seconds:.0f} s.",
+        "",
+        "| method | directions found (images) | direction error median / p90 (deg) | "
+        "patch-normal error median / p90 (deg, area-weighted) | "
+        "patch precision / recall % (GT normal within 10 deg) | rectified area % | "
+        "pose success (R err < 5 deg) | GT-correct matches (total / median) | "
+        "keypoints / image (median) | s / image (median) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for m in methods:
         rs = [r for r in records if r["method"] == m]
         succ = sum(r["success"] for r in rs)
         corr = [r["num_correct"] for r in rs]
         kps = np.median([r[k] for r in rs for k in ("num_kp0", "num_kp1")])
         if m == "plain":
-            lines.append(f"| {m} | - | - | - | - | 0 | {succ}/{len(rs)} | {sum(corr)} / "
-                         f"{np.median(corr):.0f} | {kps:.0f} | {np.median(secs[m]):.2f} |")
+            lines.append(
+                f"| {m} | - | - | - | - | 0 | {succ}/{len(rs)} | {sum(corr)} / "
+                f"{np.median(corr):.0f} | {kps:.0f} | {np.median(secs[m]):.2f} |"
+            )
             continue
         d = np.array(dir_err[m])
         found = int(np.isfinite(d).all(1).sum())
@@ -325,7 +384,7 @@ def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, s
         pe = np.array(patch_err[m]) if patch_err[m] else np.zeros((0, 2))
         pr = prec_rec[m]
 
-        def wq(q):
+        def wq(q, pe=pe):
             if len(pe) == 0:
                 return None
             o = np.argsort(pe[:, 0])
@@ -338,16 +397,22 @@ def report(records, dir_err, patch_err, coverage, nrect, secs, prec_rec, args, s
             f"{_fmt(wq(0.9), 2)} | {_fmt(100 * pr[0] / max(pr[1], 1), 0)} / "
             f"{_fmt(100 * pr[2] / max(pr[3], 1), 0)} | "
             f"{100 * np.mean(coverage[m]):.0f} | {succ}/{len(rs)} | "
-            f"{sum(corr)} / {np.median(corr):.0f} | {kps:.0f} | {np.median(secs[m]):.2f} |")
-    by_target = ["", "Per target (pose success; GT-correct total):", "",
-                 "| method | " + " | ".join(sorted({r['target'] for r in records})) + " |",
-                 "|---|" + "---|" * len({r['target'] for r in records})]
+            f"{sum(corr)} / {np.median(corr):.0f} | {kps:.0f} | {np.median(secs[m]):.2f} |"
+        )
+    by_target = [
+        "",
+        "Per target (pose success; GT-correct total):",
+        "",
+        "| method | " + " | ".join(sorted({r["target"] for r in records})) + " |",
+        "|---|" + "---|" * len({r["target"] for r in records}),
+    ]
     for m in methods:
         cells = []
         for t in sorted({r["target"] for r in records}):
             rs = [r for r in records if r["method"] == m and r["target"] == t]
-            cells.append(f"{sum(r['success'] for r in rs)}/{len(rs)}; "
-                         f"{sum(r['num_correct'] for r in rs)}")
+            cells.append(
+                f"{sum(r['success'] for r in rs)}/{len(rs)}; {sum(r['num_correct'] for r in rs)}"
+            )
         by_target.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines + by_target) + "\n"
 
@@ -366,7 +431,8 @@ def paired_lines(records: list[dict], rows: dict) -> str:
             f"- {r['method']} vs plain, {r['pairs']} pairs: more GT-correct on {r['more']}, "
             f"fewer on {r['fewer']} (sign test p = {r['p_correct']:.3f}); pose solved only "
             f"by the network row {r['wins']}, only by plain {r['losses']} "
-            f"(McNemar p = {r['p_success']:.3f}).")
+            f"(McNemar p = {r['p_success']:.3f})."
+        )
     return "Paired vs plain SIFT:\n\n" + "\n".join(lines) + "\n"
 
 
@@ -380,15 +446,15 @@ def combine(specs: list[str], bin_deg: float = 10.0, baseline: str | None = None
         label, _, rest = spec.partition("=")
         path, _, method = rest.rpartition(":")
         if not label or not path or not Path(path).is_file():
-            raise SystemExit(f"--combine {spec!r}: expected LABEL=records.csv:method "
-                             "with an existing file")
+            raise SystemExit(
+                f"--combine {spec!r}: expected LABEL=records.csv:method with an existing file"
+            )
         recs = [dict(r, method=label) for r in rep.read_csv(path) if r["method"] == method]
         if not recs:
             raise SystemExit(f"--combine {spec!r}: no records of method {method!r} in {path}")
         records += recs
     c = EvalConf(bin_deg=bin_deg)
-    text = rep.markdown_table(records, c.bin_deg, c.auc_thresholds, c.success_deg,
-                              c.min_correct)
+    text = rep.markdown_table(records, c.bin_deg, c.auc_thresholds, c.success_deg, c.min_correct)
     if baseline is not None:
         text += "\n" + rep.paired_markdown(records, baseline, c.bin_deg)
     return text
@@ -414,8 +480,9 @@ def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
         model, params = scene_camera(scene)
         for path in sorted((scene / "images").glob("*.jpg"))[:num_images]:
             image = read_image(path)
-            camera = make_camera(model, [float(p) for p in params.split(",")],
-                                 image.shape[1], image.shape[0])
+            camera = make_camera(
+                model, [float(p) for p in params.split(",")], image.shape[1], image.shape[0]
+            )
             for m, c in modes.items():
                 t = time.perf_counter()
                 if c is None:
@@ -426,19 +493,32 @@ def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
                 res = extract_image(image, camera, None, c)
                 cov = 0.0 if res.coverage is None else 100 * float((res.coverage >= 0).mean())
                 warped = sum(r.size[0] * r.size[1] for r in res.rectifications)
-                rows[m].append((time.perf_counter() - t, len(res.rectifications), cov,
-                                warped / (camera.width * camera.height)))
-            logger.info("%s: %s", path.name, ", ".join(f"{m} {v[-1][0]:.2f} s"
-                                                        for m, v in rows.items()))
+                rows[m].append(
+                    (
+                        time.perf_counter() - t,
+                        len(res.rectifications),
+                        cov,
+                        warped / (camera.width * camera.height),
+                    )
+                )
+            logger.info(
+                "%s: %s", path.name, ", ".join(f"{m} {v[-1][0]:.2f} s" for m, v in rows.items())
+            )
     size = f"{image.shape[1]}x{image.shape[0]}"
-    out = [f"{len(rows[WHOLE])} images ({size}), {max_num_features} features, one thread.",
-           "", "| mode | s / image median (min-max) | warps median | covered % median | "
-           "warped pixels / image pixels median |", "|---|---|---|---|---|"]
+    out = [
+        f"{len(rows[WHOLE])} images ({size}), {max_num_features} features, one thread.",
+        "",
+        "| mode | s / image median (min-max) | warps median | covered % median | "
+        "warped pixels / image pixels median |",
+        "|---|---|---|---|---|",
+    ]
     for m, v in rows.items():
         a = np.array(v)
-        out.append(f"| {m} | {np.median(a[:, 0]):.2f} ({a[:, 0].min():.2f}-"
-                   f"{a[:, 0].max():.2f}) | {np.median(a[:, 1]):.0f} | "
-                   f"{np.median(a[:, 2]):.0f} | {np.median(a[:, 3]):.2f} |")
+        out.append(
+            f"| {m} | {np.median(a[:, 0]):.2f} ({a[:, 0].min():.2f}-"
+            f"{a[:, 0].max():.2f}) | {np.median(a[:, 1]):.0f} | "
+            f"{np.median(a[:, 2]):.0f} | {np.median(a[:, 3]):.2f} |"
+        )
     return "\n".join(out) + "\n"
 
 
@@ -452,24 +532,51 @@ def main(argv=None) -> int:
     p.add_argument("--tilt_deg", type=float, nargs=2, default=(10.0, 20.0))
     p.add_argument("--field", type=float, default=0.15)
     p.add_argument("--max_num_features", type=int, default=8192)
-    p.add_argument("--depth_model", nargs="+", default=[], metavar="NAME|PATH",
-                   help="add a row 'rect network (NAME)' per ONNX depth network (registry "
-                        "name, e.g. rectsift-lite0, or .onnx path; CPU, one thread)")
-    p.add_argument("--depth_model_vp", action="store_true",
-                   help="with --depth_model: also each network with vp.enabled (+ VP)")
-    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS,
-                   help="rows to run besides the --depth_model rows (default: all)")
-    p.add_argument("--rect_conf", default=None,
-                   help='JSON conf overrides for every rectified row, e.g. '
-                        '\'{"dedup": {"enabled": false}}\'')
+    p.add_argument(
+        "--depth_model",
+        nargs="+",
+        default=[],
+        metavar="NAME|PATH",
+        help="add a row 'rect network (NAME)' per ONNX depth network (registry "
+        "name, e.g. rectsift-lite0, or .onnx path; CPU, one thread)",
+    )
+    p.add_argument(
+        "--depth_model_vp",
+        action="store_true",
+        help="with --depth_model: also each network with vp.enabled (+ VP)",
+    )
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=list(METHODS),
+        choices=METHODS,
+        help="rows to run besides the --depth_model rows (default: all)",
+    )
+    p.add_argument(
+        "--rect_conf",
+        default=None,
+        help='JSON conf overrides for every rectified row, e.g. \'{"dedup": {"enabled": false}}\'',
+    )
     p.add_argument("--output", type=Path, help="also write the Markdown table here")
-    p.add_argument("--combine", nargs="+", metavar="LABEL=records.csv:method",
-                   help="only merge eval_strecha records into one table (see above)")
+    p.add_argument(
+        "--combine",
+        nargs="+",
+        metavar="LABEL=records.csv:method",
+        help="only merge eval_strecha records into one table (see above)",
+    )
     p.add_argument("--bin_deg", type=float, default=10.0, help="with --combine")
-    p.add_argument("--baseline", metavar="LABEL",
-                   help="with --combine: also pair every other row against this one")
-    p.add_argument("--timing", nargs="+", type=Path, metavar="SCENE",
-                   help="only time plain SIFT and the depth-free modes on Strecha scenes")
+    p.add_argument(
+        "--baseline",
+        metavar="LABEL",
+        help="with --combine: also pair every other row against this one",
+    )
+    p.add_argument(
+        "--timing",
+        nargs="+",
+        type=Path,
+        metavar="SCENE",
+        help="only time plain SIFT and the depth-free modes on Strecha scenes",
+    )
     p.add_argument("--num_images", type=int, default=3, help="with --timing, per scene")
     args = p.parse_args(argv)
     if args.depth_model_vp and not args.depth_model:
@@ -478,8 +585,7 @@ def main(argv=None) -> int:
     if args.timing:
         text = timing(args.timing, args.num_images, args.max_num_features)
     else:
-        text = combine(args.combine, args.bin_deg, args.baseline) if args.combine \
-            else run(args)
+        text = combine(args.combine, args.bin_deg, args.baseline) if args.combine else run(args)
     print(text)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -54,14 +54,24 @@ def compare_outputs(ref: np.ndarray, out: np.ndarray) -> dict[str, float]:
     """Max absolute error and max error relative to the largest reference magnitude."""
     ref = np.asarray(ref, np.float64).reshape(out.shape)
     err = np.abs(np.asarray(out, np.float64) - ref)
-    return {"max_abs": float(err.max()),
-            "max_rel": float(err.max() / max(np.abs(ref).max(), 1e-12))}
+    return {
+        "max_abs": float(err.max()),
+        "max_rel": float(err.max() / max(np.abs(ref).max(), 1e-12)),
+    }
 
 
-def export_depth_onnx(model, output: str | Path, spec: ModelSpec, height: int = 256,
-                      width: int = 320, dynamic: bool = True, fp16: bool = False,
-                      verify: bool = True, opset: int = OPSET,
-                      fp16_storage: bool = False) -> dict[str, float]:
+def export_depth_onnx(
+    model,
+    output: str | Path,
+    spec: ModelSpec,
+    height: int = 256,
+    width: int = 320,
+    dynamic: bool = True,
+    fp16: bool = False,
+    verify: bool = True,
+    opset: int = OPSET,
+    fp16_storage: bool = False,
+) -> dict[str, float]:
     """Export ``model`` (torch.nn.Module) to ``output`` with ``spec`` attached.
 
     ``height``/``width``: the example (and, when not ``dynamic``, the fixed) input size.
@@ -88,13 +98,23 @@ def export_depth_onnx(model, output: str | Path, spec: ModelSpec, height: int = 
     if dynamic:
         ia = (2, 3) if spec.layout == "NCHW" else (1, 2)
         oa = _spatial_axes(rank, last_ch)
-        dyn = {spec.input_name: {0: "batch", ia[0]: "height", ia[1]: "width"},
-               spec.output_name: {0: "batch", oa[0]: "out_height", oa[1]: "out_width"}}
+        dyn = {
+            spec.input_name: {0: "batch", ia[0]: "height", ia[1]: "width"},
+            spec.output_name: {0: "batch", oa[0]: "out_height", oa[1]: "out_width"},
+        }
     with tempfile.TemporaryDirectory() as tmp:
         raw = Path(tmp) / "raw.onnx"
-        torch.onnx.export(model, (x,), str(raw), opset_version=opset,
-                          input_names=[spec.input_name], output_names=[spec.output_name],
-                          dynamic_axes=dyn, do_constant_folding=True, dynamo=False)
+        torch.onnx.export(
+            model,
+            (x,),
+            str(raw),
+            opset_version=opset,
+            input_names=[spec.input_name],
+            output_names=[spec.output_name],
+            dynamic_axes=dyn,
+            do_constant_folding=True,
+            dynamo=False,
+        )
         proto = onnx.load(str(raw))
     if fp16:
         from onnxruntime.transformers.float16 import convert_float_to_float16
@@ -106,9 +126,14 @@ def export_depth_onnx(model, output: str | Path, spec: ModelSpec, height: int = 
     attach_metadata(proto, spec)
     onnx.checker.check_model(proto)
     onnx.save(proto, str(output))
-    logger.info("wrote %s (%.1f MB, opset %d, %s%s)", output, output.stat().st_size / 1e6,
-                opset, "dynamic" if dynamic else f"fixed {width}x{height}",
-                ", fp16" if fp16 else ", fp16 storage" if fp16_storage else "")
+    logger.info(
+        "wrote %s (%.1f MB, opset %d, %s%s)",
+        output,
+        output.stat().st_size / 1e6,
+        opset,
+        "dynamic" if dynamic else f"fixed {width}x{height}",
+        ", fp16" if fp16 else ", fp16 storage" if fp16_storage else "",
+    )
     if not verify:
         return {}
     return verify_export(model, output, spec, height, width, dynamic)
@@ -131,8 +156,11 @@ def store_weights_fp16(proto, min_elements: int = 64) -> int:
             continue
         name = init.name
         init.CopyFrom(numpy_helper.from_array(arr.astype("float16"), name + "_fp16"))
-        casts.append(helper.make_node("Cast", [name + "_fp16"], [name], to=TensorProto.FLOAT,
-                                      name=name + "_to_fp32"))
+        casts.append(
+            helper.make_node(
+                "Cast", [name + "_fp16"], [name], to=TensorProto.FLOAT, name=name + "_to_fp32"
+            )
+        )
         count += 1
     graph.node.extend(casts)
     _toposort(graph)
@@ -160,8 +188,9 @@ def _toposort(graph) -> None:
     graph.node.extend(nodes)
 
 
-def verify_export(model, path: Path, spec: ModelSpec, height: int, width: int,
-                  dynamic: bool) -> dict[str, float]:
+def verify_export(
+    model, path: Path, spec: ModelSpec, height: int, width: int, dynamic: bool
+) -> dict[str, float]:
     """Run PyTorch and onnxruntime on the same input (another size when dynamic, batch 2)."""
     import onnxruntime as ort
     import torch
@@ -175,8 +204,10 @@ def verify_export(model, path: Path, spec: ModelSpec, height: int, width: int,
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     (out,) = sess.run([spec.output_name], {spec.input_name: x.numpy()})
     errs = compare_outputs(ref, out)
-    print(f"onnxruntime vs PyTorch on {tuple(x.shape)}: max abs error {errs['max_abs']:.3g}, "
-          f"max rel error {errs['max_rel']:.3g}")
+    print(
+        f"onnxruntime vs PyTorch on {tuple(x.shape)}: max abs error {errs['max_abs']:.3g}, "
+        f"max rel error {errs['max_rel']:.3g}"
+    )
     return errs
 
 
@@ -198,8 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--fixed", action="store_true", help="fixed input size (default: dynamic)")
     p.add_argument("--fp16", action="store_true", help="fp16 weights, float32 inputs/outputs")
-    p.add_argument("--fp16_storage", action="store_true",
-                   help="fp16 weights in the file, float32 arithmetic (half the size)")
+    p.add_argument(
+        "--fp16_storage",
+        action="store_true",
+        help="fp16 weights in the file, float32 arithmetic (half the size)",
+    )
     p.add_argument("--no_verify", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
@@ -212,9 +246,17 @@ def main(argv: list[str] | None = None) -> int:
     spec = ModelSpec()
     if args.spec:
         spec = ModelSpec.from_dict(json.loads(args.spec.read_text()), origin=str(args.spec))
-    export_depth_onnx(net, args.output, spec, args.height, args.width,
-                      dynamic=not args.fixed, fp16=args.fp16, verify=not args.no_verify,
-                      fp16_storage=args.fp16_storage)
+    export_depth_onnx(
+        net,
+        args.output,
+        spec,
+        args.height,
+        args.width,
+        dynamic=not args.fixed,
+        fp16=args.fp16,
+        verify=not args.no_verify,
+        fp16_storage=args.fp16_storage,
+    )
     return 0
 
 

@@ -32,8 +32,12 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=3000)
-    p.add_argument("--time_budget", type=float, default=0.0,
-                   help="minutes of training (0: no limit; the schedule then uses steps only)")
+    p.add_argument(
+        "--time_budget",
+        type=float,
+        default=0.0,
+        help="minutes of training (0: no limit; the schedule then uses steps only)",
+    )
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--width", type=int, default=256)
@@ -46,8 +50,12 @@ def parse_args(argv=None):
     p.add_argument("--render_width", type=int, default=320)
     p.add_argument("--render_height", type=int, default=240)
     p.add_argument("--render_processes", type=int, default=2)
-    p.add_argument("--texture_dir", type=Path, default=None,
-                   help="folder of facade photos used as wall textures (optional)")
+    p.add_argument(
+        "--texture_dir",
+        type=Path,
+        default=None,
+        help="folder of facade photos used as wall textures (optional)",
+    )
     p.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     p.add_argument("--workers", type=int, default=1, help="DataLoader workers")
     p.add_argument("--log_every", type=int, default=20)
@@ -56,28 +64,42 @@ def parse_args(argv=None):
     p.add_argument("--export_to", type=Path, default=None, help="ONNX path (default out/)")
     p.add_argument("--export_max_side", type=int, default=384)
     p.add_argument("--fp16", action="store_true", help="export fp16 weights")
-    p.add_argument("--fp16_storage", action="store_true",
-                   help="export fp16 weights read as float32 (half the size, float32 arithmetic)")
+    p.add_argument(
+        "--fp16_storage",
+        action="store_true",
+        help="export fp16 weights read as float32 (half the size, float32 arithmetic)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from out/last.pt")
-    p.add_argument("--init", type=Path, default=None,
-                   help="start from the weights of this checkpoint (a new optimizer and "
-                        "schedule: fine-tuning)")
+    p.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="start from the weights of this checkpoint (a new optimizer and "
+        "schedule: fine-tuning)",
+    )
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s",
-                        handlers=[logging.StreamHandler(),
-                                  logging.FileHandler(args.out / "train.log")])
+    logging.basicConfig(
+        level=logging.INFO,
+        format="%(asctime)s %(name)s %(message)s",
+        handlers=[logging.StreamHandler(), logging.FileHandler(args.out / "train.log")],
+    )
     import torch
 
     from rectified_colmap.training.data import PoolDataset, render_pool
     from rectified_colmap.training.export import export_onnx, model_spec
     from rectified_colmap.training.model import build_model
-    from rectified_colmap.training.train import (lr_factor, make_optimizer, save_checkpoint,
-                                                 set_lr, train_step)
+    from rectified_colmap.training.train import (
+        lr_factor,
+        make_optimizer,
+        save_checkpoint,
+        set_lr,
+        train_step,
+    )
 
     torch.set_num_threads(args.threads)
     random.seed(args.seed)
@@ -88,12 +110,17 @@ def main(argv=None) -> int:
 
     t0 = time.time()
     seeds = range(args.seed * 1_000_000, args.seed * 1_000_000 + args.pool_size)
-    paths = render_pool(args.pool_dir, seeds, args.render_width, args.render_height,
-                        args.texture_dir, args.render_processes)
+    paths = render_pool(
+        args.pool_dir,
+        seeds,
+        args.render_width,
+        args.render_height,
+        args.texture_dir,
+        args.render_processes,
+    )
     logger.info("pool: %d views in %s (%.0f s)", len(paths), args.pool_dir, time.time() - t0)
 
-    ds = PoolDataset(paths, args.height, args.width, seed=args.seed,
-                     length=args.steps * args.batch)
+    ds = PoolDataset(paths, args.height, args.width, seed=args.seed, length=args.steps * args.batch)
     model = build_model(pretrained=not args.no_pretrained, width=args.decoder_width)
     opt = make_optimizer(model, args.lr)
     start = 0
@@ -108,18 +135,36 @@ def main(argv=None) -> int:
         start = ck["step"]
         logger.info("resumed from step %d", start)
     sampler = range(start * args.batch, args.steps * args.batch)
-    loader = torch.utils.data.DataLoader(ds, batch_size=args.batch, sampler=sampler,
-                                         num_workers=args.workers, drop_last=True,
-                                         persistent_workers=args.workers > 0,
-                                         prefetch_factor=4 if args.workers else None)
+    loader = torch.utils.data.DataLoader(
+        ds,
+        batch_size=args.batch,
+        sampler=sampler,
+        num_workers=args.workers,
+        drop_last=True,
+        persistent_workers=args.workers > 0,
+        prefetch_factor=4 if args.workers else None,
+    )
     spec = model_spec(args.export_max_side)
 
     def export(tag):
         te = time.time()
-        errs = export_onnx(model, export_to, spec, height=256, width=320, fp16=args.fp16,
-                           fp16_storage=args.fp16_storage)
-        logger.info("exported %s to %s (%s, %.0f s) %s", tag, export_to,
-                    f"{export_to.stat().st_size / 1e6:.1f} MB", time.time() - te, errs)
+        errs = export_onnx(
+            model,
+            export_to,
+            spec,
+            height=256,
+            width=320,
+            fp16=args.fp16,
+            fp16_storage=args.fp16_storage,
+        )
+        logger.info(
+            "exported %s to %s (%s, %.0f s) %s",
+            tag,
+            export_to,
+            f"{export_to.stat().st_size / 1e6:.1f} MB",
+            time.time() - te,
+            errs,
+        )
 
     t_train = time.time()
     t_export = t_train
@@ -140,10 +185,14 @@ def main(argv=None) -> int:
             running[k] = running.get(k, 0.0) + v
         if step % args.log_every == 0:
             n = args.log_every
-            logger.info("step %d  %s  lr %.2e  %.2f s/step  progress %.3f", step,
-                        "  ".join(f"{k} {v / n:.4f}" for k, v in running.items()),
-                        opt.param_groups[1]["lr"], (time.time() - t_train) / (step - start),
-                        progress)
+            logger.info(
+                "step %d  %s  lr %.2e  %.2f s/step  progress %.3f",
+                step,
+                "  ".join(f"{k} {v / n:.4f}" for k, v in running.items()),
+                opt.param_groups[1]["lr"],
+                (time.time() - t_train) / (step - start),
+                progress,
+            )
             running = {}
         if step % args.ckpt_every == 0:
             save_checkpoint(args.out / "last.pt", model, opt, step, args.decoder_width)

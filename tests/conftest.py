@@ -37,8 +37,14 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)):
     return R, -R @ eye
 
 
-def plane_view(texture: np.ndarray, metres_per_texel: float, K: np.ndarray, R: np.ndarray,
-               t: np.ndarray, size: tuple[int, int]):
+def plane_view(
+    texture: np.ndarray,
+    metres_per_texel: float,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    size: tuple[int, int],
+):
     """A camera (K, R, t; COLMAP pixel convention) looking at the textured plane z = 0 of the
     world, the texture centred on the origin. Returns (image uint8, z-depth float32 with
     NaN off the plane or behind the camera)."""
@@ -47,11 +53,21 @@ def plane_view(texture: np.ndarray, metres_per_texel: float, K: np.ndarray, R: n
     w, h = size
     th, tw = texture.shape[:2]
     # texture pixel (COLMAP convention) -> world (x, y, 0)
-    S = np.array([[metres_per_texel, 0, -tw / 2 * metres_per_texel],
-                  [0, -metres_per_texel, th / 2 * metres_per_texel], [0, 0, 1]])
+    S = np.array(
+        [
+            [metres_per_texel, 0, -tw / 2 * metres_per_texel],
+            [0, -metres_per_texel, th / 2 * metres_per_texel],
+            [0, 0, 1],
+        ]
+    )
     H = K @ np.stack([R[:, 0], R[:, 1], t], 1) @ S
-    img = cv2.warpPerspective(texture, to_opencv_homography(H), (w, h), flags=cv2.INTER_AREA
-                              if False else cv2.INTER_LINEAR, borderValue=0)
+    img = cv2.warpPerspective(
+        texture,
+        to_opencv_homography(H),
+        (w, h),
+        flags=cv2.INTER_AREA if False else cv2.INTER_LINEAR,
+        borderValue=0,
+    )
     # depth: plane n_c . X = d_c in the camera frame
     n_c = R[:, 2]
     d_c = n_c @ t

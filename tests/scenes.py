@@ -1,4 +1,4 @@
-"""Rendered street views with exact depth and poses for the pipeline tests (rectified_colmap.synth)."""
+"""Rendered street views with exact depth and poses for the pipeline tests (synth)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,14 @@ def _view(scene, camera, pose):
     return {"image": r.image, "depth": r.depth, "camera": camera, "pose": pose}
 
 
-def street_pair(seed: int, min_deg: float = 50, max_deg: float = 90, width: int = 480,
-                height: int = 360, target: str = "facade"):
+def street_pair(
+    seed: int,
+    min_deg: float = 50,
+    max_deg: float = 90,
+    width: int = 480,
+    height: int = 360,
+    target: str = "facade",
+):
     """Two views of one street point (on a facade or the ground) whose viewing directions
     are min_deg-max_deg apart."""
     rng = np.random.default_rng(seed)
@@ -24,8 +30,9 @@ def street_pair(seed: int, min_deg: float = 50, max_deg: float = 90, width: int 
     return _view(scene, camera, p0), _view(scene, camera, p1)
 
 
-def street_orbit(seed: int, num: int = 6, width: int = 480, height: int = 360,
-                 pitch_down_deg: float = 12.0):
+def street_orbit(
+    seed: int, num: int = 6, width: int = 480, height: int = 360, pitch_down_deg: float = 12.0
+):
     """A walk along a street (an SfM sequence), pitched down so that the ground is in view
     beside the facades (a single plane is a degenerate scene for SfM initialisation)."""
     rng = np.random.default_rng(seed)

@@ -21,8 +21,13 @@ PKG = ROOT / "rectified_colmap"
 # unless a longer name is listed). A module may import its own stage and lower ones.
 LEVELS = {
     "": 0,  # rectified_colmap/__init__.py
-    "config": 0, "conventions": 0, "geometry": 0, "camera": 0,
-    "io": 0, "io.images": 0, "io.lock": 0,
+    "config": 0,
+    "conventions": 0,
+    "geometry": 0,
+    "camera": 0,
+    "io": 0,
+    "io.images": 0,
+    "io.lock": 0,
     "depth": 1,  # DepthMap, sources (files, ONNX, registry, contract), disparity shift
     "normals": 2,
     "planes": 3,
@@ -30,10 +35,17 @@ LEVELS = {
     "rectify": 5,
     "features": 6,
     "dedup": 7,
-    "io.colmap_db": 8, "io.hloc_h5": 8, "io.merge": 8,  # writers of Features
-    "pipeline": 9, "viz": 9,
-    "extract": 10, "distributed": 10,  # distributed and extract call each other
-    "synth": 11, "eval": 11, "training": 11, "demo": 11,
+    "io.colmap_db": 8,
+    "io.hloc_h5": 8,
+    "io.merge": 8,  # writers of Features
+    "pipeline": 9,
+    "viz": 9,
+    "extract": 10,
+    "distributed": 10,  # distributed and extract call each other
+    "synth": 11,
+    "eval": 11,
+    "training": 11,
+    "demo": 11,
     "cli": 12,
 }
 
@@ -68,12 +80,16 @@ def _imports(path: Path, package: str) -> set[str]:
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".") if package else []
-                base = base[:len(base) - (node.level - 1)]
+                base = base[: len(base) - (node.level - 1)]
                 target = ".".join(base + ([node.module] if node.module else []))
-            elif node.module and (node.module == "rectified_colmap"
-                                  or node.module.startswith("rectified_colmap.")):
-                target = node.module[len("rectified_colmap."):] \
-                    if node.module != "rectified_colmap" else ""
+            elif node.module and (
+                node.module == "rectified_colmap" or node.module.startswith("rectified_colmap.")
+            ):
+                target = (
+                    node.module[len("rectified_colmap.") :]
+                    if node.module != "rectified_colmap"
+                    else ""
+                )
             else:
                 continue
             for alias in node.names:
@@ -82,7 +98,7 @@ def _imports(path: Path, package: str) -> set[str]:
         elif isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.name.startswith("rectified_colmap."):
-                    out.add(alias.name[len("rectified_colmap."):])
+                    out.add(alias.name[len("rectified_colmap.") :])
     return out
 
 
@@ -105,8 +121,10 @@ def _level(name: str) -> int | None:
 
 def test_every_module_has_a_stage():
     missing = [m for m in MODULES if _level(m) is None]
-    assert not missing, (f"place {missing} in LEVELS of tests/test_architecture.py (and in "
-                         "the module map of docs/architecture.md)")
+    assert not missing, (
+        f"place {missing} in LEVELS of tests/test_architecture.py (and in "
+        "the module map of docs/architecture.md)"
+    )
 
 
 def test_graph_reader_sees_relative_and_in_function_imports():
@@ -119,10 +137,15 @@ def test_graph_reader_sees_relative_and_in_function_imports():
 
 
 def test_no_lower_stage_imports_a_higher_one():
-    bad = sorted((m, t) for m, targets in _graph().items() for t in targets
-                 if _level(t) > _level(m) and (m, t) not in ALLOWED)
-    assert not bad, ("lower stage imports a higher one (module -> import): "
-                     + ", ".join(f"{m} ({_level(m)}) -> {t} ({_level(t)})" for m, t in bad))
+    bad = sorted(
+        (m, t)
+        for m, targets in _graph().items()
+        for t in targets
+        if _level(t) > _level(m) and (m, t) not in ALLOWED
+    )
+    assert not bad, "lower stage imports a higher one (module -> import): " + ", ".join(
+        f"{m} ({_level(m)}) -> {t} ({_level(t)})" for m, t in bad
+    )
 
 
 def test_allowed_violations_still_exist():
@@ -133,11 +156,19 @@ def test_allowed_violations_still_exist():
 
 def test_cli_is_a_thin_layer_nobody_imports():
     g = _graph()
-    users = sorted(m for m, targets in g.items() if not m.startswith("cli")
-                   and any(t == "cli" or t.startswith("cli.") for t in targets))
+    users = sorted(
+        m
+        for m, targets in g.items()
+        if not m.startswith("cli") and any(t == "cli" or t.startswith("cli.") for t in targets)
+    )
     assert not users, f"package modules importing the CLI: {users}"
-    cross = sorted((m, t) for m, targets in g.items() if m.startswith("cli.")
-                   for t in targets if t.startswith("cli.") and t != m)
+    cross = sorted(
+        (m, t)
+        for m, targets in g.items()
+        if m.startswith("cli.")
+        for t in targets
+        if t.startswith("cli.") and t != m
+    )
     assert not cross, f"CLI modules importing each other (shared code belongs below): {cross}"
 
 
@@ -147,11 +178,13 @@ def test_scripts_use_the_installed_package(script):
     tree = ast.parse(text)
     modules = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     modules |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    assert not any(m == "rectified_colmap.cli" or m.startswith("rectified_colmap.cli.")
-                   for m in modules), f"{script} imports the CLI; use the API (eval/, ...)"
+    assert not any(
+        m == "rectified_colmap.cli" or m.startswith("rectified_colmap.cli.") for m in modules
+    ), f"{script} imports the CLI; use the API (eval/, ...)"
     if script not in SYS_PATH_ALLOWED:
-        assert not re.search(r"sys\.path\.(insert|append)|sys\.path\[", text), \
+        assert not re.search(r"sys\.path\.(insert|append)|sys\.path\[", text), (
             f"{script} edits sys.path; import rectified_colmap from the installed package"
+        )
 
 
 def test_module_map_lists_every_module():
@@ -160,8 +193,7 @@ def test_module_map_lists_every_module():
     missing = []
     for path in MODULES.values():
         rel = path.relative_to(PKG).as_posix()
-        parents = [p.as_posix() + "/" for p in path.relative_to(PKG).parents
-                   if p.as_posix() != "."]
+        parents = [p.as_posix() + "/" for p in path.relative_to(PKG).parents if p.as_posix() != "."]
         if rel not in listed and not any(p in listed for p in parents):
             missing.append(rel)
     assert not missing, f"docs/architecture.md's module map lacks {missing}"

@@ -19,8 +19,7 @@ import pytest
 
 from rectified_colmap import conventions
 from rectified_colmap.features import Features, detect_sift, similarity_frames
-from rectified_colmap.io.colmap_db import (PROVENANCE_TABLE, ColmapDatabase,
-                                           image_ids_to_pair_id)
+from rectified_colmap.io.colmap_db import PROVENANCE_TABLE, ColmapDatabase, image_ids_to_pair_id
 
 COLMAP = shutil.which("colmap")
 needs_colmap = pytest.mark.skipif(COLMAP is None, reason="colmap command line not installed")
@@ -31,13 +30,16 @@ def random_features(n: int, seed: int, size=(320, 240)) -> Features:
     xy = rng.random((n, 2)) * size
     shapes = similarity_frames(rng.uniform(1, 8, n), rng.uniform(-np.pi, np.pi, n))
     shapes[:, 0, 1] += rng.uniform(-0.5, 0.5, n)  # a real affine frame, not a similarity
-    return Features(xy, shapes, rng.integers(0, 256, (n, 128), dtype=np.uint8),
-                    rng.integers(-1, 3, n).astype(np.int32))
+    return Features(
+        xy,
+        shapes,
+        rng.integers(0, 256, (n, 128), dtype=np.uint8),
+        rng.integers(-1, 3, n).astype(np.int32),
+    )
 
 
 def pinhole(w=320, h=240, f=300.0) -> pycolmap.Camera:
-    return pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2,
-                                                                            0.01])
+    return pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2, 0.01])
 
 
 def cache_options() -> pycolmap.DatabaseCacheOptions:
@@ -60,14 +62,16 @@ def homography_views(texture, n: int = 3):
     big = texture(300, 400, seed=3)
     Hs, ims = [], []
     for i in range(n):
-        H = np.array([[1, 0.04 * i, 10.0 * i], [-0.03 * i, 1 + 0.02 * i, 6.0 * i],
-                      [1.5e-4 * i, 0, 1]])
+        H = np.array(
+            [[1, 0.04 * i, 10.0 * i], [-0.03 * i, 1 + 0.02 * i, 6.0 * i], [1.5e-4 * i, 0, 1]]
+        )
         Hs.append(H)
         ims.append(cv2.warpPerspective(big, H, (320, 240), flags=cv2.INTER_LINEAR))
     return ims, Hs
 
 
 # ---------------------------------------------------------------------------------------
+
 
 def test_new_database_round_trip_through_pycolmap(tmp_path):
     path = tmp_path / "sub" / "db.db"
@@ -76,8 +80,9 @@ def test_new_database_round_trip_through_pycolmap(tmp_path):
         cam = pinhole()
         cam_id = db.add_camera(cam, prior_focal_length=True)
         cam2_id = db.add_camera(pinhole(160, 120, 150.0), prior_focal_length=False)
-        ids = {name: db.add_image(name, cam_id if i < 2 else cam2_id)
-               for i, name in enumerate(feats)}
+        ids = {
+            name: db.add_image(name, cam_id if i < 2 else cam2_id) for i, name in enumerate(feats)
+        }
         assert db.find_image("db/im2.jpg") == (ids["db/im2.jpg"], cam2_id)
         assert db.find_image("missing.jpg") is None
         got = db.get_camera(cam_id)
@@ -139,8 +144,12 @@ def test_overwrite_errors_and_stale_matches(tmp_path):
         np.testing.assert_array_equal(db.read_keypoints(a), new.colmap_keypoints())
         np.testing.assert_array_equal(db.read_descriptors(a), new.descriptors)
         con = db._con
-        assert con.execute("SELECT COUNT(*) FROM matches WHERE pair_id = ?",
-                           (image_ids_to_pair_id(a, b),)).fetchone()[0] == 0
+        assert (
+            con.execute(
+                "SELECT COUNT(*) FROM matches WHERE pair_id = ?", (image_ids_to_pair_id(a, b),)
+            ).fetchone()[0]
+            == 0
+        )
     not_db = tmp_path / "x.db"
     not_db.write_bytes(b"this is not sqlite" * 100)
     with pytest.raises(ValueError, match="x.db"):
@@ -170,14 +179,16 @@ def test_rigs_and_frames_all_or_none(tmp_path):
             db.write_features(image_id, random_features(20, i))
     with pycolmap.Database.open(path) as pdb:
         assert pdb.num_frames() == 3 and pdb.num_rigs() == 2
-        assert all(i.has_frame_id() for i in pdb.read_all_images()) \
-            if hasattr(pycolmap.Image, "has_frame_id") else True
+        assert (
+            all(i.has_frame_id() for i in pdb.read_all_images())
+            if hasattr(pycolmap.Image, "has_frame_id")
+            else True
+        )
         cache = pycolmap.DatabaseCache.create(pdb, cache_options())
         assert cache.num_images() == 3 and cache.num_frames() == 3 and cache.num_rigs() == 2
 
 
-def write_views(db: ColmapDatabase, ims, camera: pycolmap.Camera, start: int = 0
-                ) -> list[int]:
+def write_views(db: ColmapDatabase, ims, camera: pycolmap.Camera, start: int = 0) -> list[int]:
     found = db.find_image("view0.png")
     cam_id = found[1] if found else db.add_camera(camera, True)
     ids = []
@@ -197,8 +208,10 @@ def check_geometries(path: Path, ids: list[int], Hs: list[np.ndarray], min_inlie
         for pair_id, g in zip(pair_ids, geoms):
             i1, i2 = pycolmap.pair_id_to_image_pair(pair_id)
             config = pycolmap.TwoViewGeometryConfiguration(g.config)
-            assert config not in (pycolmap.TwoViewGeometryConfiguration.UNDEFINED,
-                                  pycolmap.TwoViewGeometryConfiguration.DEGENERATE)
+            assert config not in (
+                pycolmap.TwoViewGeometryConfiguration.UNDEFINED,
+                pycolmap.TwoViewGeometryConfiguration.DEGENERATE,
+            )
             m = np.asarray(g.inlier_matches)
             assert len(m) >= min_inliers
             k1, k2 = ids.index(i1), ids.index(i2)
@@ -248,13 +261,13 @@ def test_kill9_then_resume(tmp_path):
     script.write_text(KILL_SCRIPT)
     n = 60
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1]))
-    args = [sys.executable, str(script), str(tmp_path / "k.db"), str(n),
-            str(Path(__file__).parent)]
+    args = [sys.executable, str(script), str(tmp_path / "k.db"), str(n), str(Path(__file__).parent)]
     rng = np.random.default_rng(0)
     done = []
-    for trial in range(4):
-        proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE,
-                                stderr=subprocess.DEVNULL, text=True)
+    for _trial in range(4):
+        proc = subprocess.Popen(
+            args, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        )
         target = rng.integers(1, 12)  # images this run writes before the kill (about)
         for _ in range(target):
             proc.stdout.readline()
@@ -276,11 +289,13 @@ def test_kill9_then_resume(tmp_path):
         assert db.camera_ids() == [1]
         for image_id, name in names.items():
             i = int(name[2:5])
-            np.testing.assert_array_equal(db.read_descriptors(image_id),
-                                          random_features(2000 + i, i).descriptors)
+            np.testing.assert_array_equal(
+                db.read_descriptors(image_id), random_features(2000 + i, i).descriptors
+            )
 
 
 # -- COLMAP 3.8 command line ------------------------------------------------------------
+
 
 def run_colmap(*args):
     out = subprocess.run([COLMAP, *args], capture_output=True, text=True, timeout=120)
@@ -289,8 +304,15 @@ def run_colmap(*args):
 
 
 def colmap_match(path: Path):
-    run_colmap("exhaustive_matcher", "--database_path", str(path), "--SiftMatching.use_gpu",
-               "0", "--SiftMatching.num_threads", "2")
+    run_colmap(
+        "exhaustive_matcher",
+        "--database_path",
+        str(path),
+        "--SiftMatching.use_gpu",
+        "0",
+        "--SiftMatching.num_threads",
+        "2",
+    )
 
 
 @needs_colmap
@@ -305,8 +327,15 @@ def test_colmap38_reads_our_database(tmp_path, texture):
     empty = tmp_path / "empty.db"
     run_colmap("database_creator", "--database_path", str(empty))
     merged = tmp_path / "merged.db"
-    run_colmap("database_merger", "--database_path1", str(path), "--database_path2",
-               str(empty), "--merged_database_path", str(merged))
+    run_colmap(
+        "database_merger",
+        "--database_path1",
+        str(path),
+        "--database_path2",
+        str(empty),
+        "--merged_database_path",
+        str(merged),
+    )
     with ColmapDatabase(path) as a, ColmapDatabase(merged) as b:
         assert a.image_names() == b.image_names()
         for i in ids:

@@ -40,8 +40,9 @@ def test_opencv_homography_moves_pixels_as_in_colmap_frame():
     H = np.diag([2.0, 2.0, 1.0])
     img = np.zeros((8, 8), np.float32)
     img[2, 3] = 1.0
-    out = cv2.warpPerspective(img, conventions.to_opencv_homography(H), (16, 16),
-                              flags=cv2.INTER_LINEAR)
+    out = cv2.warpPerspective(
+        img, conventions.to_opencv_homography(H), (16, 16), flags=cv2.INTER_LINEAR
+    )
     ys, xs = np.nonzero(out > 0)
     cx = (out[ys, xs] * xs).sum() / out[ys, xs].sum() + 0.5  # back to COLMAP
     cy = (out[ys, xs] * ys).sum() / out[ys, xs].sum() + 0.5

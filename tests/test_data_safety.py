@@ -43,8 +43,18 @@ def images(tmp_path_factory):
 
 
 def run(images, *args, depth_model="none"):
-    return main(["extract", "--image_path", str(images), "--depth_model", depth_model,
-                 "--no_progress", *CAM, *map(str, args)])
+    return main(
+        [
+            "extract",
+            "--image_path",
+            str(images),
+            "--depth_model",
+            depth_model,
+            "--no_progress",
+            *CAM,
+            *map(str, args),
+        ]
+    )
 
 
 def db_state(path) -> dict:
@@ -55,18 +65,36 @@ def db_state(path) -> dict:
         assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
         names = [r[0] for r in con.execute("SELECT name FROM images")]
         assert len(names) == len(set(names))
-        assert con.execute("SELECT COUNT(*) FROM images WHERE image_id NOT IN "
-                           "(SELECT image_id FROM keypoints)").fetchone()[0] == 0
-        assert con.execute("SELECT COUNT(*) FROM images WHERE image_id NOT IN "
-                           "(SELECT image_id FROM descriptors)").fetchone()[0] == 0
-        assert con.execute("SELECT COUNT(*) FROM cameras WHERE camera_id NOT IN "
-                           "(SELECT camera_id FROM images)").fetchone()[0] == 0
-        feats = {n: (k, d) for n, k, d in con.execute(
-            "SELECT i.name, k.data, d.data FROM images i JOIN keypoints k USING(image_id) "
-            "JOIN descriptors d USING(image_id)")}
+        assert (
+            con.execute(
+                "SELECT COUNT(*) FROM images WHERE image_id NOT IN (SELECT image_id FROM keypoints)"
+            ).fetchone()[0]
+            == 0
+        )
+        assert (
+            con.execute(
+                "SELECT COUNT(*) FROM images WHERE image_id NOT IN "
+                "(SELECT image_id FROM descriptors)"
+            ).fetchone()[0]
+            == 0
+        )
+        assert (
+            con.execute(
+                "SELECT COUNT(*) FROM cameras WHERE camera_id NOT IN (SELECT camera_id FROM images)"
+            ).fetchone()[0]
+            == 0
+        )
+        feats = {
+            n: (k, d)
+            for n, k, d in con.execute(
+                "SELECT i.name, k.data, d.data FROM images i JOIN keypoints k USING(image_id) "
+                "JOIN descriptors d USING(image_id)"
+            )
+        }
         matches = con.execute("SELECT pair_id, data FROM matches ORDER BY 1").fetchall()
-        geoms = con.execute("SELECT pair_id, config, data FROM two_view_geometries "
-                            "ORDER BY 1").fetchall()
+        geoms = con.execute(
+            "SELECT pair_id, config, data FROM two_view_geometries ORDER BY 1"
+        ).fetchall()
     finally:
         con.close()
     return {"features": feats, "matches": matches, "geometries": geoms}
@@ -75,8 +103,11 @@ def db_state(path) -> dict:
 def no_leftovers(*outputs):
     for out in outputs:
         out = Path(out)
-        stray = [p.name for p in out.parent.iterdir() if p.name.startswith(out.name)
-                 and p.name != out.name]
+        stray = [
+            p.name
+            for p in out.parent.iterdir()
+            if p.name.startswith(out.name) and p.name != out.name
+        ]
         assert stray == [], stray
 
 
@@ -103,8 +134,15 @@ def test_rerun_adding_hloc_file_keeps_database_and_matches(images, tmp_path, cap
     assert run(images, "--database", db) == 0
     before = match(db)
     assert sum(1 for g in before["geometries"] if g[1] >= 2) >= 6  # verified pairs
-    s = extract(images, database=db, hloc_features=h5, depth_model="none",
-                camera_model="PINHOLE", camera_params=PARAMS, progress=False)
+    s = extract(
+        images,
+        database=db,
+        hloc_features=h5,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        progress=False,
+    )
     assert s.ok and s.done == [] and sorted(s.copied) == NAMES
     assert db_state(db) == before  # keypoints, descriptors, matches untouched
     assert hloc_h5.list_names(h5) == NAMES
@@ -113,8 +151,15 @@ def test_rerun_adding_hloc_file_keeps_database_and_matches(images, tmp_path, cap
     assert s.foreign == {}  # our own features: nothing to report
     no_leftovers(db, h5)
     # and again: nothing to do at all
-    s = extract(images, database=db, hloc_features=h5, depth_model="none",
-                camera_model="PINHOLE", camera_params=PARAMS, progress=False)
+    s = extract(
+        images,
+        database=db,
+        hloc_features=h5,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        progress=False,
+    )
     assert sorted(s.skipped) == NAMES and not s.copied and not s.done
 
 
@@ -123,8 +168,15 @@ def test_hloc_first_then_database_gets_the_same_features(images, tmp_path):
     assert run(images, "--hloc_features", h5) == 0
     with h5py.File(h5, "r") as f:
         before = {n: f[n]["keypoints"][()] for n in NAMES}
-    s = extract(images, database=db, hloc_features=h5, depth_model="none",
-                camera_model="PINHOLE", camera_params=PARAMS, progress=False)
+    s = extract(
+        images,
+        database=db,
+        hloc_features=h5,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        progress=False,
+    )
     assert s.ok and s.done == [] and sorted(s.copied) == NAMES
     with h5py.File(h5, "r") as f:
         for n in NAMES:
@@ -140,17 +192,24 @@ def test_foreign_features_are_kept_and_reported_once(images, tmp_path, caplog):
     db, h5 = tmp_path / "colmap.db", tmp_path / "f.h5"
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = 1
-    pycolmap.extract_features(db, images, image_names=NAMES, extraction_options=opts,
-                              device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        db, images, image_names=NAMES, extraction_options=opts, device=pycolmap.Device.cpu
+    )
     before = match(db)
     caplog.clear()
-    s = extract(images, database=db, hloc_features=h5, depth_model="none",
-                camera_model="PINHOLE", camera_params=PARAMS, progress=False)
+    s = extract(
+        images,
+        database=db,
+        hloc_features=h5,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        progress=False,
+    )
     assert s.ok and s.done == [] and s.foreign == {str(db): len(NAMES)}
     assert db_state(db) == before
     said = [r for r in caplog.records if "another extractor" in r.getMessage()]
-    assert len(said) == 1 and said[0].levelname == "WARNING" and "sub/0.png" in \
-        said[0].getMessage()
+    assert len(said) == 1 and said[0].levelname == "WARNING" and "sub/0.png" in said[0].getMessage()
     same_features_in_both(db, h5)
     with h5py.File(h5, "r") as f:  # marked as not ours in the hloc file too
         assert all(f[n].attrs.get(hloc_h5.EXTRACTOR_ATTR) is None for n in NAMES)
@@ -158,8 +217,11 @@ def test_foreign_features_are_kept_and_reported_once(images, tmp_path, caplog):
     caplog.clear()
     n_matches, n_geoms = len(before["matches"]), len(before["geometries"])
     assert run(images, "--database", db, "--hloc_features", h5, "--overwrite") == 0
-    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"
-              and "--overwrite" in r.getMessage()]
+    warned = [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelname == "WARNING" and "--overwrite" in r.getMessage()
+    ]
     assert len(warned) == 1
     assert f"{n_matches} match and {n_geoms} two-view geometry rows" in warned[0]
     after = db_state(db)
@@ -199,29 +261,59 @@ def race(images, tmp_path, runs: list[list[str]]) -> list[tuple[int, str]]:
     for k, names in enumerate(runs):
         lst = tmp_path / f"list{k}_{time.monotonic_ns()}.txt"
         lst.write_text("\n".join(names) + "\n")
-        args = ["extract", "--image_path", str(images), "--image_list", str(lst),
-                "--database", str(tmp_path / "db.db"), "--hloc_features",
-                str(tmp_path / "f.h5"), "--depth_model", "none", "--no_progress", *CAM]
-        procs.append(subprocess.Popen([sys.executable, "-c", _RACER, str(start), *args],
-                                      cwd=REPO, stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True))
+        args = [
+            "extract",
+            "--image_path",
+            str(images),
+            "--image_list",
+            str(lst),
+            "--database",
+            str(tmp_path / "db.db"),
+            "--hloc_features",
+            str(tmp_path / "f.h5"),
+            "--depth_model",
+            "none",
+            "--no_progress",
+            *CAM,
+        ]
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-c", _RACER, str(start), *args],
+                cwd=REPO,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+        )
     return [(p.wait(timeout=300), p.stdout.read()) for p in procs]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("existing", [False, True], ids=["new-files", "existing-files"])
 def test_concurrent_runs_lose_duplicate_and_corrupt_nothing(images, tmp_path, existing):
-    lists = {"same": [NAMES, NAMES, NAMES],
-             "disjoint": [NAMES[:2], NAMES[2:4], NAMES[4:]],
-             "overlapping": [NAMES[:3], NAMES[1:4], NAMES[2:]]}
+    lists = {
+        "same": [NAMES, NAMES, NAMES],
+        "disjoint": [NAMES[:2], NAMES[2:4], NAMES[4:]],
+        "overlapping": [NAMES[:3], NAMES[1:4], NAMES[2:]],
+    }
     reference = None
     for round_ in range(2):
         for kind, runs in lists.items():
             work = tmp_path / f"{kind}{round_}"
             work.mkdir()
             if existing:  # files that already hold one image and a user's matches
-                assert run(images, "--database", work / "db.db", "--hloc_features",
-                           work / "f.h5", "--image_list", _list(work, NAMES[4:])) == 0
+                assert (
+                    run(
+                        images,
+                        "--database",
+                        work / "db.db",
+                        "--hloc_features",
+                        work / "f.h5",
+                        "--image_list",
+                        _list(work, NAMES[4:]),
+                    )
+                    == 0
+                )
             results = race(images, work, runs)
             for code, out in results:
                 assert code == 0, out
@@ -249,23 +341,47 @@ def _list(folder: Path, names: list[str]) -> Path:
 # Checks before writing: one line naming the file and the cause, no traceback, no file.
 
 
-@pytest.mark.parametrize("args,expect", [
-    (["--camera_model", "PINHOLE", "--camera_params", "300,300,160"],
-     "PINHOLE takes 4 params, got 3"),
-    (["--camera_model", "NOPE", "--camera_params", "1"], "unknown camera model 'NOPE'"),
-    (["--depth_model", "no-such-model"], "'no-such-model'"),
-    (["--depth_model", "{tmp}/corrupt.onnx"], "corrupt.onnx: onnxruntime cannot load"),
-    (["--depth_model", "{tmp}/missing.onnx"], "missing.onnx: depth model file does not"),
-    (["--depth_path", "{tmp}/nodepth"], "nodepth: depth folder does not exist"),
-    (["--image_list", "{tmp}/nolist.txt"], "nolist.txt: cannot read the image list"),
-], ids=["param-count", "camera-model", "model-name", "corrupt-model", "missing-model",
-        "depth-folder", "image-list"])
+@pytest.mark.parametrize(
+    "args,expect",
+    [
+        (
+            ["--camera_model", "PINHOLE", "--camera_params", "300,300,160"],
+            "PINHOLE takes 4 params, got 3",
+        ),
+        (["--camera_model", "NOPE", "--camera_params", "1"], "unknown camera model 'NOPE'"),
+        (["--depth_model", "no-such-model"], "'no-such-model'"),
+        (["--depth_model", "{tmp}/corrupt.onnx"], "corrupt.onnx: onnxruntime cannot load"),
+        (["--depth_model", "{tmp}/missing.onnx"], "missing.onnx: depth model file does not"),
+        (["--depth_path", "{tmp}/nodepth"], "nodepth: depth folder does not exist"),
+        (["--image_list", "{tmp}/nolist.txt"], "nolist.txt: cannot read the image list"),
+    ],
+    ids=[
+        "param-count",
+        "camera-model",
+        "model-name",
+        "corrupt-model",
+        "missing-model",
+        "depth-folder",
+        "image-list",
+    ],
+)
 def test_bad_arguments_fail_before_anything_is_written(images, tmp_path, args, expect):
     (tmp_path / "corrupt.onnx").write_bytes(b"not a protobuf")
     args = [a.replace("{tmp}", str(tmp_path)) for a in args]
     db, h5 = tmp_path / "out" / "db.db", tmp_path / "out" / "f.h5"
-    cmd = [sys.executable, "-m", "rectified_colmap.cli", "extract", "--image_path",
-           str(images), "--database", str(db), "--hloc_features", str(h5), "--no_progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rectified_colmap.cli",
+        "extract",
+        "--image_path",
+        str(images),
+        "--database",
+        str(db),
+        "--hloc_features",
+        str(h5),
+        "--no_progress",
+    ]
     if "--camera_model" not in args:
         cmd += CAM
     out = subprocess.run(cmd + args, cwd=REPO, capture_output=True, text=True, timeout=120)
@@ -283,14 +399,19 @@ def _unprivileged() -> list[str] | None:
     setpriv = shutil.which("setpriv")
     if setpriv is None:
         return None
-    probe = subprocess.run([setpriv, "--bounding-set=-dac_override,-dac_read_search",
-                            "true"], capture_output=True)
-    return [setpriv, "--bounding-set=-dac_override,-dac_read_search"] \
-        if probe.returncode == 0 else None
+    probe = subprocess.run(
+        [setpriv, "--bounding-set=-dac_override,-dac_read_search", "true"], capture_output=True
+    )
+    return (
+        [setpriv, "--bounding-set=-dac_override,-dac_read_search"]
+        if probe.returncode == 0
+        else None
+    )
 
 
-@pytest.mark.parametrize("case", ["read-only-database", "wal-in-read-only-folder",
-                                  "read-only-hloc-folder"])
+@pytest.mark.parametrize(
+    "case", ["read-only-database", "wal-in-read-only-folder", "read-only-hloc-folder"]
+)
 def test_read_only_outputs_are_refused_in_one_line(images, tmp_path, case):
     prefix = _unprivileged()
     if prefix is None:
@@ -312,10 +433,25 @@ def test_read_only_outputs_are_refused_in_one_line(images, tmp_path, case):
         folder.chmod(0o555)
     try:
         out = subprocess.run(
-            prefix + [sys.executable, "-m", "rectified_colmap.cli", "extract",
-                      "--image_path", str(images), *target, "--depth_model", "none",
-                      "--no_progress", *CAM], cwd=REPO, capture_output=True, text=True,
-            timeout=120)
+            prefix
+            + [
+                sys.executable,
+                "-m",
+                "rectified_colmap.cli",
+                "extract",
+                "--image_path",
+                str(images),
+                *target,
+                "--depth_model",
+                "none",
+                "--no_progress",
+                *CAM,
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     finally:
         folder.chmod(0o755)
         db.chmod(0o644)
@@ -335,8 +471,11 @@ def test_per_image_problems_are_named_listed_and_leave_no_rows(images, tmp_path,
     shutil.copytree(images, root)
     depths = tmp_path / "depths"
     (depths / "sub").mkdir(parents=True)
-    bad_depth = {"sub/0.png": np.full((240, 320), np.nan), "sub/1.png": np.zeros((240, 320)),
-                 "sub/2.png": -np.ones((240, 320))}
+    bad_depth = {
+        "sub/0.png": np.full((240, 320), np.nan),
+        "sub/1.png": np.zeros((240, 320)),
+        "sub/2.png": -np.ones((240, 320)),
+    }
     for name, d in bad_depth.items():
         np.save(depths / f"{name}.npy", d.astype(np.float32))
     (depths / "sub" / "3.png.npy").write_bytes(b"corrupt")  # fails this image
@@ -344,8 +483,9 @@ def test_per_image_problems_are_named_listed_and_leave_no_rows(images, tmp_path,
     (root / "sub" / "cut.jpg").write_bytes(jpg[: len(jpg) * 2 // 3])
     db, h5 = tmp_path / "db.db", tmp_path / "f.h5"
     caplog.clear()
-    s = extract(root, database=db, hloc_features=h5, depth_path=depths, depth_model="none",
-                progress=False)  # no camera flags: focal lengths are guessed
+    s = extract(
+        root, database=db, hloc_features=h5, depth_path=depths, depth_model="none", progress=False
+    )  # no camera flags: focal lengths are guessed
     assert not s.ok and list(s.failed) == ["sub/3.png"]
     assert "3.png.npy" in s.failed["sub/3.png"]
     for name in bad_depth:
@@ -360,8 +500,23 @@ def test_per_image_problems_are_named_listed_and_leave_no_rows(images, tmp_path,
     guesses = [r.getMessage() for r in caplog.records if "no focal length" in r.getMessage()]
     assert len(guesses) == 1 and "6 image(s)" in guesses[0] and "sub/0.png" in guesses[0]
     # exit code of the same run through the CLI (nothing left to do but the failed image)
-    assert main(["extract", "--image_path", str(root), "--database", str(db),
-                 "--depth_path", str(depths), "--depth_model", "none", "--no_progress"]) == 1
+    assert (
+        main(
+            [
+                "extract",
+                "--image_path",
+                str(root),
+                "--database",
+                str(db),
+                "--depth_path",
+                str(depths),
+                "--depth_model",
+                "none",
+                "--no_progress",
+            ]
+        )
+        == 1
+    )
 
 
 def test_embedded_model_licence_matches_its_metadata():
@@ -370,16 +525,22 @@ def test_embedded_model_licence_matches_its_metadata():
     from rectified_colmap.depth.registry import REGISTRY, model_path
 
     entry = REGISTRY["rectsift-lite0"]
-    meta = {p.key: p.value for p in onnx.load(model_path(entry.name),
-                                              load_external_data=False).metadata_props}
+    meta = {
+        p.key: p.value
+        for p in onnx.load(model_path(entry.name), load_external_data=False).metadata_props
+    }
     assert meta["rectified_colmap.licence"].split()[0] == entry.licence
 
 
 def test_database_records_only_our_features(tmp_path):
     from rectified_colmap.features import Features
 
-    feats = Features(np.array([[10.5, 20.5]]), np.eye(2)[None] * 2.0,
-                     np.full((1, 128), 45, np.uint8), np.array([-1], np.int32))
+    feats = Features(
+        np.array([[10.5, 20.5]]),
+        np.eye(2)[None] * 2.0,
+        np.full((1, 128), 45, np.uint8),
+        np.array([-1], np.int32),
+    )
     cam = pycolmap.Camera(model="PINHOLE", width=100, height=80, params=[90, 90, 50, 40])
     with ColmapDatabase(tmp_path / "d.db") as db:
         mine, cam_id, _ = db.write_image("a.png", feats, cam)
@@ -402,10 +563,19 @@ def test_second_writer_waits_naming_the_holder(tmp_path, caplog):
 
     out = tmp_path / "db.db"
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time\nfrom rectified_colmap.io.lock import "
-         "OutputLock\nwith OutputLock(sys.argv[1]):\n    print('held', flush=True)\n"
-         "    time.sleep(float(sys.argv[2]))", str(out), "1.5"],
-        cwd=REPO, stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\nfrom rectified_colmap.io.lock import "
+            "OutputLock\nwith OutputLock(sys.argv[1]):\n    print('held', flush=True)\n"
+            "    time.sleep(float(sys.argv[2]))",
+            str(out),
+            "1.5",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert holder.stdout.readline().strip() == "held"
     t0 = time.monotonic()
     with OutputLock(out):
@@ -414,14 +584,22 @@ def test_second_writer_waits_naming_the_holder(tmp_path, caplog):
     assert holder.wait(timeout=30) == 0
     assert waited > 0.3
     said = [r.getMessage() for r in caplog.records if "waiting" in r.getMessage()]
-    assert said == [f"{out} is being written by process {holder.pid}; waiting for it to "
-                    "finish"]
+    assert said == [f"{out} is being written by process {holder.pid}; waiting for it to finish"]
     assert not lock_path(out).exists()
     # kill -9 of a holder: the kernel releases the lock
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time\nfrom rectified_colmap.io.lock import "
-         "OutputLock\nwith OutputLock(sys.argv[1]):\n    print('held', flush=True)\n"
-         "    time.sleep(60)", str(out)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\nfrom rectified_colmap.io.lock import "
+            "OutputLock\nwith OutputLock(sys.argv[1]):\n    print('held', flush=True)\n"
+            "    time.sleep(60)",
+            str(out),
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert holder.stdout.readline().strip() == "held"
     holder.kill()
     holder.wait(timeout=30)
@@ -437,16 +615,27 @@ def test_kill_9_mid_run_leaves_valid_files_and_resumes_to_a_clean_result(images,
     for name in names:
         shutil.copy(images / f"sub/{name[-5]}.png", root / name)
     clean, killed = tmp_path / "clean", tmp_path / "killed"
-    cmd = [sys.executable, "-m", "rectified_colmap.cli", "extract", "--image_path",
-           str(root), "--depth_model", "none", "--no_progress", *CAM]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rectified_colmap.cli",
+        "extract",
+        "--image_path",
+        str(root),
+        "--depth_model",
+        "none",
+        "--no_progress",
+        *CAM,
+    ]
 
     def out(folder):
         return ["--database", str(folder / "db.db"), "--hloc_features", str(folder / "f.h5")]
 
     assert subprocess.run(cmd + out(clean), cwd=REPO, capture_output=True).returncode == 0
     for kill_after in (1, 5, 10):
-        proc = subprocess.Popen(cmd + out(killed), cwd=REPO, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            cmd + out(killed), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         while proc.poll() is None and images_with_features(killed / "db.db") < kill_after:
             time.sleep(0.005)
         proc.kill()

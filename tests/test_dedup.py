@@ -5,8 +5,14 @@ import pytest
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.config import DedupConf, ExtractConf
-from rectified_colmap.dedup import (duplicate_fraction, duplicate_pairs, fill_from_plain,
-                                    frame_anisotropy, near_duplicate_mask, neighbour_pairs)
+from rectified_colmap.dedup import (
+    duplicate_fraction,
+    duplicate_pairs,
+    fill_from_plain,
+    frame_anisotropy,
+    near_duplicate_mask,
+    neighbour_pairs,
+)
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.features import Features, detect_sift, similarity_frames
 from rectified_colmap.pipeline import extract_image
@@ -35,8 +41,7 @@ def test_neighbour_pairs_equal_brute_force(radius):
 
 def test_neighbour_pairs_at_cell_boundaries():
     # Distances just under / over the radius across cell borders (cells of side radius).
-    xy = np.array([[0.999, 0.0], [1.998, 0.0], [5.0, 5.0], [6.0, 5.0], [2.999, 2.999],
-                   [3.7, 3.7]])
+    xy = np.array([[0.999, 0.0], [1.998, 0.0], [5.0, 5.0], [6.0, 5.0], [2.999, 2.999], [3.7, 3.7]])
     got = {tuple(p) for p in neighbour_pairs(xy, 1.0).tolist()}
     assert got == {(0, 1), (4, 5)}  # (2, 3) are exactly 1 apart: not closer than 1
 
@@ -45,8 +50,9 @@ def make_features(xy, scales, angles, desc, patch, stretch=None):
     shapes = similarity_frames(np.asarray(scales, float), np.asarray(angles, float))
     if stretch is not None:  # rectified keypoints: A = J A_rect with J = diag(1, cos tilt)
         shapes = np.asarray(stretch) @ shapes
-    return Features(np.asarray(xy, float), shapes, np.asarray(desc, np.uint8),
-                    np.asarray(patch, np.int32))
+    return Features(
+        np.asarray(xy, float), shapes, np.asarray(desc, np.uint8), np.asarray(patch, np.int32)
+    )
 
 
 def random_desc(rng, n):
@@ -90,16 +96,31 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
     rng = np.random.default_rng(4)
     n = 200
     xy = rng.uniform(0, 500, (n, 2))
-    plain = make_features(xy, rng.uniform(1, 10, n), np.zeros(n), random_desc(rng, n),
-                          np.full(n, -1))
+    plain = make_features(
+        xy, rng.uniform(1, 10, n), np.zeros(n), random_desc(rng, n), np.full(n, -1)
+    )
     # 30 rectified twins of plain keypoints (oblique: they win) and 20 new rectified ones.
     tw = rng.choice(n, 30, replace=False)
     J = np.diag([1.0, 0.5])
-    rect = Features.concatenate([
-        make_features(xy[tw] + 0.3, plain.scales[tw], np.zeros(30), plain.descriptors[tw],
-                      np.zeros(30), J @ np.eye(2) / np.sqrt(0.5)),
-        make_features(rng.uniform(0, 500, (20, 2)), np.full(20, 3.0), np.zeros(20),
-                      random_desc(rng, 20), np.zeros(20))])
+    rect = Features.concatenate(
+        [
+            make_features(
+                xy[tw] + 0.3,
+                plain.scales[tw],
+                np.zeros(30),
+                plain.descriptors[tw],
+                np.zeros(30),
+                J @ np.eye(2) / np.sqrt(0.5),
+            ),
+            make_features(
+                rng.uniform(0, 500, (20, 2)),
+                np.full(20, 3.0),
+                np.zeros(20),
+                random_desc(rng, 20),
+                np.zeros(20),
+            ),
+        ]
+    )
     out = fill_from_plain(rect, plain, n, DedupConf())
     assert len(out) == n
     assert (out.patch >= 0).sum() == 50  # every rectified feature kept
@@ -109,8 +130,7 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
     # The 30 twins removed, then the 20 smallest remaining plain scales.
     rest = np.setdiff1d(np.arange(n), tw)
     expect = np.sort(rest[np.argsort(-plain.scales[rest], kind="stable")[:150]])
-    got = np.sort([np.flatnonzero((plain.keypoints == k).all(1))[0]
-                   for k in kept_plain.keypoints])
+    got = np.sort([np.flatnonzero((plain.keypoints == k).all(1))[0] for k in kept_plain.keypoints])
     np.testing.assert_array_equal(got, expect)
     # Patches that yield nothing leave the whole budget to plain SIFT.
     assert len(fill_from_plain(Features.empty(), plain, 150, DedupConf())) == 150

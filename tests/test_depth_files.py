@@ -4,10 +4,16 @@ import pycolmap
 import pytest
 
 from rectified_colmap.depth import DepthMap
-from rectified_colmap.depth.files import (ArrayDepthSource, FileDepthSource, candidate_paths,
-                                          find_depth_file, read_colmap_array,
-                                          read_depth_file, write_colmap_array,
-                                          write_depth_file)
+from rectified_colmap.depth.files import (
+    ArrayDepthSource,
+    FileDepthSource,
+    candidate_paths,
+    find_depth_file,
+    read_colmap_array,
+    read_depth_file,
+    write_colmap_array,
+    write_depth_file,
+)
 
 
 def _depth(h=12, w=16, seed=0):
@@ -33,7 +39,7 @@ def test_colmap_bin_layout_matches_colmap_reader(tmp_path):
     np.testing.assert_array_equal(read_colmap_array(tmp_path / "n.bin"), normals)
     # channel-major planes for multi-channel (COLMAP stores column-major over (w, h, c))
     raw = (tmp_path / "n.bin").read_bytes()
-    data = np.frombuffer(raw[raw.index(b"3&") + 2:], "<f4")
+    data = np.frombuffer(raw[raw.index(b"3&") + 2 :], "<f4")
     np.testing.assert_array_equal(data[:35].reshape(5, 7), normals[..., 0])
 
 
@@ -73,8 +79,19 @@ def test_npz_key_rules(tmp_path):
         read_depth_file(tmp_path / "two.npz")
 
 
-@pytest.mark.parametrize("case", ["npy_garbage", "npz_garbage", "png_garbage", "png_8bit",
-                                  "bin_truncated", "bin_header", "npy_3d", "npy_pickle"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "npy_garbage",
+        "npz_garbage",
+        "png_garbage",
+        "png_8bit",
+        "bin_truncated",
+        "bin_header",
+        "npy_3d",
+        "npy_pickle",
+    ],
+)
 def test_corrupt_files_raise_naming_the_file(tmp_path, case):
     d = _depth()
     if case == "npy_garbage":
@@ -107,13 +124,19 @@ def test_corrupt_files_raise_naming_the_file(tmp_path, case):
 
 def test_lookup_order(tmp_path):
     name = "sub/0001.jpg"
-    expected = ["sub/0001.jpg.npy", "sub/0001.npy", "sub/0001.jpg.npz", "sub/0001.npz",
-                "sub/0001.jpg.png", "sub/0001.png", "sub/0001.jpg.geometric.bin",
-                "sub/0001.jpg.photometric.bin",
-                "stereo/depth_maps/sub/0001.jpg.geometric.bin",
-                "stereo/depth_maps/sub/0001.jpg.photometric.bin"]
-    assert [p.relative_to(tmp_path).as_posix()
-            for p in candidate_paths(tmp_path, name)] == expected
+    expected = [
+        "sub/0001.jpg.npy",
+        "sub/0001.npy",
+        "sub/0001.jpg.npz",
+        "sub/0001.npz",
+        "sub/0001.jpg.png",
+        "sub/0001.png",
+        "sub/0001.jpg.geometric.bin",
+        "sub/0001.jpg.photometric.bin",
+        "stereo/depth_maps/sub/0001.jpg.geometric.bin",
+        "stereo/depth_maps/sub/0001.jpg.photometric.bin",
+    ]
+    assert [p.relative_to(tmp_path).as_posix() for p in candidate_paths(tmp_path, name)] == expected
     assert find_depth_file(tmp_path, name) is None
     # create them from last to first: each new one must win
     for i, rel in enumerate(reversed(expected)):

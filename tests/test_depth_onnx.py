@@ -21,8 +21,15 @@ H, W = 48, 64
 R_LEFT, R_RIGHT = 200, 50
 
 
-def make_model(path, spec: ModelSpec | None, layout="NCHW", static=None, pool=False,
-               input_name="image", output_name="depth"):
+def make_model(
+    path,
+    spec: ModelSpec | None,
+    layout="NCHW",
+    static=None,
+    pool=False,
+    input_name="image",
+    output_name="depth",
+):
     """Network: output = input channel 0 (after preprocessing), optionally 2x2-pooled."""
     if static:
         shape = [1, 3, *static] if layout == "NCHW" else [1, *static, 3]
@@ -30,14 +37,20 @@ def make_model(path, spec: ModelSpec | None, layout="NCHW", static=None, pool=Fa
         shape = ["N", 3, "H", "W"] if layout == "NCHW" else ["N", "H", "W", 3]
     x = helper.make_tensor_value_info(input_name, TensorProto.FLOAT, shape)
     y = helper.make_tensor_value_info(output_name, TensorProto.FLOAT, None)
-    inits = [helper.make_tensor("idx", TensorProto.INT64, [], [0]),
-             helper.make_tensor("ax", TensorProto.INT64, [1], [1])]
-    nodes = [helper.make_node("Gather", [input_name, "idx"], ["g"],
-                              axis=1 if layout == "NCHW" else 3),
-             helper.make_node("Unsqueeze", ["g", "ax"], ["u" if pool else output_name])]
+    inits = [
+        helper.make_tensor("idx", TensorProto.INT64, [], [0]),
+        helper.make_tensor("ax", TensorProto.INT64, [1], [1]),
+    ]
+    nodes = [
+        helper.make_node("Gather", [input_name, "idx"], ["g"], axis=1 if layout == "NCHW" else 3),
+        helper.make_node("Unsqueeze", ["g", "ax"], ["u" if pool else output_name]),
+    ]
     if pool:
-        nodes.append(helper.make_node("AveragePool", ["u"], [output_name],
-                                      kernel_shape=[2, 2], strides=[2, 2]))
+        nodes.append(
+            helper.make_node(
+                "AveragePool", ["u"], [output_name], kernel_shape=[2, 2], strides=[2, 2]
+            )
+        )
     graph = helper.make_graph(nodes, "tiny", [x], [y], inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 9
@@ -51,7 +64,7 @@ def image(seed=0, h=H, w=W):
     rng = np.random.default_rng(seed)
     img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
     img[:, : w // 2, 0] = R_LEFT
-    img[:, w // 2:, 0] = R_RIGHT
+    img[:, w // 2 :, 0] = R_RIGHT
     return img
 
 
@@ -71,15 +84,19 @@ def check_halves(values, left, right, tol=1e-3):
     h, w = values.shape
     q = max(1, w // 8)
     np.testing.assert_allclose(values[:, : w // 2 - q], left, atol=tol)
-    np.testing.assert_allclose(values[:, w // 2 + q:], right, atol=tol)
+    np.testing.assert_allclose(values[:, w // 2 + q :], right, atol=tol)
 
 
 @pytest.mark.parametrize("mode", list(RESIZES))
 @pytest.mark.parametrize("output", ["metric", "depth", "disparity", "metric_canonical"])
 def test_resize_modes_and_output_kinds(tmp_path, mode, output):
     resize, shape = RESIZES[mode]
-    spec = dataclasses.replace(SPEC, resize=resize, output=output,
-                               canonical_focal=100.0 if output == "metric_canonical" else None)
+    spec = dataclasses.replace(
+        SPEC,
+        resize=resize,
+        output=output,
+        canonical_focal=100.0 if output == "metric_canonical" else None,
+    )
     src = OnnxDepthSource(make_model(tmp_path / "m.onnx", spec))
     d = src(image(), camera(), "a.jpg")
     assert d.values.shape == shape  # network resolution, letterbox padding removed
@@ -96,8 +113,14 @@ def test_letterbox_geometry_with_lower_resolution_output(tmp_path):
     spec = dataclasses.replace(SPEC, resize=RESIZES["letterbox"][0])
     src = OnnxDepthSource(make_model(tmp_path / "m.onnx", spec, pool=True))
     g = input_geometry(src.spec, W, H)
-    assert (g.width, g.height, g.x0, g.y0, g.content_width, g.content_height) == \
-        (40, 40, 0, 0, 40, 30)
+    assert (g.width, g.height, g.x0, g.y0, g.content_width, g.content_height) == (
+        40,
+        40,
+        0,
+        0,
+        40,
+        30,
+    )
     d = src(image(), camera(), "a.jpg")
     assert d.values.shape == (15, 20)
     assert d.values.min() > 0.1  # no zero padding left
@@ -105,9 +128,15 @@ def test_letterbox_geometry_with_lower_resolution_output(tmp_path):
 
 
 def test_nhwc_bgr_and_normalisation(tmp_path):
-    spec = dataclasses.replace(SPEC, layout="NHWC", color="BGR", mean=[0.1, 0.2, 0.3],
-                               std=[0.5, 0.25, 2.0], output="metric",
-                               resize=RESIZES["keep_aspect"][0])
+    spec = dataclasses.replace(
+        SPEC,
+        layout="NHWC",
+        color="BGR",
+        mean=[0.1, 0.2, 0.3],
+        std=[0.5, 0.25, 2.0],
+        output="metric",
+        resize=RESIZES["keep_aspect"][0],
+    )
     img = image()
     img[..., 2] = 230  # B channel: BGR puts it first
     d = OnnxDepthSource(make_model(tmp_path / "m.onnx", spec, layout="NHWC"))(img, None)
@@ -117,8 +146,9 @@ def test_nhwc_bgr_and_normalisation(tmp_path):
 def test_sidecar_overrides_and_unprefixed_defaults(tmp_path):
     spec = dataclasses.replace(SPEC, resize=RESIZES["fixed"][0])
     path = make_model(tmp_path / "m.onnx", spec)
-    (tmp_path / "m.json").write_text(json.dumps(
-        {"output": "disparity", "scale": 2 / 255, "resize": RESIZES["keep_aspect"][0]}))
+    (tmp_path / "m.json").write_text(
+        json.dumps({"output": "disparity", "scale": 2 / 255, "resize": RESIZES["keep_aspect"][0]})
+    )
     d = OnnxDepthSource(path)(image(), camera())
     assert d.kind == "disparity" and d.values.shape == (24, 32)
     check_halves(d.values, 2 * R_LEFT / 255, 2 * R_RIGHT / 255)
@@ -128,8 +158,9 @@ def test_sidecar_overrides_and_unprefixed_defaults(tmp_path):
 
 
 def test_model_without_metadata_uses_fallback_and_infers_names(tmp_path):
-    path = make_model(tmp_path / "plain.onnx", None, input_name="pixel_values",
-                      output_name="predicted_depth")
+    path = make_model(
+        tmp_path / "plain.onnx", None, input_name="pixel_values", output_name="predicted_depth"
+    )
     fallback = dataclasses.replace(SPEC, output="disparity", resize=RESIZES["fixed"][0])
     src = OnnxDepthSource(path, spec=fallback)
     assert (src.spec.input_name, src.spec.output_name) == ("pixel_values", "predicted_depth")
@@ -162,8 +193,13 @@ def test_predict_batch_groups_by_size(tmp_path):
 
 
 def test_contract_round_trip_and_errors(tmp_path):
-    spec = dataclasses.replace(SPEC, output="metric_canonical", canonical_focal=1000.0,
-                               resize=RESIZES["letterbox"][0], licence="MIT")
+    spec = dataclasses.replace(
+        SPEC,
+        output="metric_canonical",
+        canonical_focal=1000.0,
+        resize=RESIZES["letterbox"][0],
+        licence="MIT",
+    )
     meta = spec.to_metadata()
     assert all(k.startswith(PREFIX) and isinstance(v, str) for k, v in meta.items())
     assert meta[PREFIX + "contract_version"] == "1"
@@ -184,7 +220,8 @@ def test_contract_round_trip_and_errors(tmp_path):
 
 def _export_module():
     spec = importlib.util.spec_from_file_location(
-        "export_depth_onnx", ROOT / "scripts" / "export_depth_onnx.py")
+        "export_depth_onnx", ROOT / "scripts" / "export_depth_onnx.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -207,12 +244,16 @@ def test_export_script_round_trip(tmp_path, precision):
             return torch.nn.functional.softplus(self.dec(y))  # positive depth (B, 1, H, W)
 
     net = Tiny()
-    spec = ModelSpec(resize={"mode": "keep_aspect", "max_side": 64, "multiple_of": 32},
-                     output="depth", name="tiny-export")
+    spec = ModelSpec(
+        resize={"mode": "keep_aspect", "max_side": 64, "multiple_of": 32},
+        output="depth",
+        name="tiny-export",
+    )
     out = tmp_path / "tiny.onnx"
     fp16, storage = precision == "fp16", precision == "fp16_storage"
-    errs = exporter.export_depth_onnx(net, out, spec, height=64, width=96, fp16=fp16,
-                                      fp16_storage=storage)
+    errs = exporter.export_depth_onnx(
+        net, out, spec, height=64, width=96, fp16=fp16, fp16_storage=storage
+    )
     assert errs["max_rel"] < {"fp32": 1e-5, "fp16": 2e-2, "fp16_storage": 3e-3}[precision]
     src = OnnxDepthSource(out)
     assert src.spec.name == "tiny-export" and src.spec.input_name == "image"
@@ -222,8 +263,9 @@ def test_export_script_round_trip(tmp_path, precision):
     x, _ = preprocess(img, src.spec)
     with torch.no_grad():
         ref = net(torch.from_numpy(x)).numpy()[0, 0]
-    np.testing.assert_allclose(d.values, ref, rtol=2e-2 if fp16 else 3e-3 if storage else 1e-4,
-                               atol=1e-4)
+    np.testing.assert_allclose(
+        d.values, ref, rtol=2e-2 if fp16 else 3e-3 if storage else 1e-4, atol=1e-4
+    )
     if fp16 or storage:
         inits = onnx.load(str(out)).graph.initializer
         assert any(t.data_type == TensorProto.FLOAT16 for t in inits)

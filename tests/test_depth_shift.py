@@ -35,8 +35,9 @@ def plane_scene(yaw_deg=35.0, height=1.5, dist=8.0, far=60.0, single=False):
 
 
 def normal_error_deg(z, true_normals):
-    n = estimate_normals(backproject(z, cam_utils.grid_rays(cam(), W, H)),
-                         ExtractConf().normals).reshape(-1, 3)
+    n = estimate_normals(
+        backproject(z, cam_utils.grid_rays(cam(), W, H)), ExtractConf().normals
+    ).reshape(-1, 3)
     n = n[np.isfinite(n).all(1)]
     cos = np.max(np.abs(n @ np.stack(true_normals).T), axis=1)
     return float(np.median(np.rad2deg(np.arccos(np.clip(cos, -1, 1)))))

@@ -46,8 +46,7 @@ def street(tmp_path_factory):
     from rectified_colmap.demo import render_walk
 
     root = tmp_path_factory.mktemp("street")
-    names, camera, _ = render_walk(root / "images", num_images=NUM_IMAGES, width=320,
-                                   height=240)
+    names, camera, _ = render_walk(root / "images", num_images=NUM_IMAGES, width=320, height=240)
     params = ",".join(f"{p:.6f}" for p in camera.params)
     return root / "images", names, params
 
@@ -55,8 +54,15 @@ def street(tmp_path_factory):
 def _extract(street, out: Path, **kw):
     images, _, params = street
     kw.setdefault("single_camera", True)
-    return extract(images, database=out / "db.db", hloc_features=out / "f.h5",
-                   camera_model="PINHOLE", camera_params=params, progress=False, **kw)
+    return extract(
+        images,
+        database=out / "db.db",
+        hloc_features=out / "f.h5",
+        camera_model="PINHOLE",
+        camera_params=params,
+        progress=False,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +81,8 @@ def db_dump(path: Path) -> dict:
         rows = con.execute(
             "SELECT i.name, c.model, c.width, c.height, c.params, c.prior_focal_length, "
             "k.rows, k.cols, k.data, d.rows, d.data FROM images i JOIN cameras c USING "
-            "(camera_id) JOIN keypoints k USING(image_id) JOIN descriptors d USING(image_id)")
+            "(camera_id) JOIN keypoints k USING(image_id) JOIN descriptors d USING(image_id)"
+        )
         out = {r[0]: r[1:] for r in rows}
         out["#cameras"] = con.execute("SELECT COUNT(*) FROM cameras").fetchone()[0]
         out["#ids"] = sorted(con.execute("SELECT name, image_id, camera_id FROM images"))
@@ -111,9 +118,20 @@ def test_sharded_runs_merged_equal_one_run(street, single, tmp_path):
         assert s.ok
         shards.append(out)
     merged = tmp_path / "merged"
-    assert main(["merge", "--single_camera", "--database_path", str(merged / "db.db"),
-                 "--hloc_features", str(merged / "f.h5")] + [str(p / f) for p in shards
-                                          for f in ("db.db", "f.h5")]) == 0
+    assert (
+        main(
+            [
+                "merge",
+                "--single_camera",
+                "--database_path",
+                str(merged / "db.db"),
+                "--hloc_features",
+                str(merged / "f.h5"),
+            ]
+            + [str(p / f) for p in shards for f in ("db.db", "f.h5")]
+        )
+        == 0
+    )
     assert_same_outputs(single, merged)  # ids included: names are merged in order
     # merging again adds nothing and changes nothing
     before = db_dump(merged / "db.db")
@@ -139,14 +157,32 @@ def test_merge_keeps_per_image_cameras_and_refuses_conflicts(street, tmp_path, c
     # a conflict: the same name with other features (here: another budget) is refused,
     # and nothing is written
     other = tmp_path / "other"
-    extract(images, database=other / "db.db", hloc_features=other / "f.h5",
-            camera_model="PINHOLE", camera_params=params, depth_model="none",
-            conf={"sift": {"max_num_features": 200}}, image_list=names[:1], progress=False)
+    extract(
+        images,
+        database=other / "db.db",
+        hloc_features=other / "f.h5",
+        camera_model="PINHOLE",
+        camera_params=params,
+        depth_model="none",
+        conf={"sift": {"max_num_features": 200}},
+        image_list=names[:1],
+        progress=False,
+    )
     target = tmp_path / "t"
-    code = main(["merge", "--database_path", str(target / "db.db"), str(one / "db.db"),
-                 str(other / "db.db")])
-    assert code == 2 and f"{names[0]!r} in {one / 'db.db'} and {other / 'db.db'}" in \
-        caplog.text and "nothing was merged" in caplog.text
+    code = main(
+        [
+            "merge",
+            "--database_path",
+            str(target / "db.db"),
+            str(one / "db.db"),
+            str(other / "db.db"),
+        ]
+    )
+    assert (
+        code == 2
+        and f"{names[0]!r} in {one / 'db.db'} and {other / 'db.db'}" in caplog.text
+        and "nothing was merged" in caplog.text
+    )
     assert not (target / "db.db").exists()
     with pytest.raises(ValueError, match="different features"):
         merge_feature_files(target / "f.h5", [one / "f.h5", other / "f.h5"])
@@ -163,8 +199,9 @@ try:
     import ray
 except ImportError:
     ray = None
-needs_ray = pytest.mark.skipif(ray is None, reason="Ray is optional: pip install "
-                               "'rectified-colmap[ray]' (CI installs it)")
+needs_ray = pytest.mark.skipif(
+    ray is None, reason="Ray is optional: pip install 'rectified-colmap[ray]' (CI installs it)"
+)
 
 
 @needs_ray
@@ -178,15 +215,36 @@ def test_ray_run_equals_one_run_and_a_killed_driver_resumes(street, single, tmp_
     # kill -9 of the driver (and its local Ray processes) mid-run; a rerun completes it
     images, _, params = street
     killed = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "rectified_colmap.cli", "extract", "--image_path",
-           str(images), "--database_path", str(killed / "db.db"), "--hloc_features",
-           str(killed / "f.h5"), "--camera_model", "PINHOLE", "--camera_params", params,
-           "--single_camera", "--ray", "--num_workers", "2", "--no_progress"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "rectified_colmap.cli",
+        "extract",
+        "--image_path",
+        str(images),
+        "--database_path",
+        str(killed / "db.db"),
+        "--hloc_features",
+        str(killed / "f.h5"),
+        "--camera_model",
+        "PINHOLE",
+        "--camera_params",
+        params,
+        "--single_camera",
+        "--ray",
+        "--num_workers",
+        "2",
+        "--no_progress",
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
     deadline = time.monotonic() + 240
-    while (proc.poll() is None and time.monotonic() < deadline
-           and images_with_features(killed / "db.db") < 2):
+    while (
+        proc.poll() is None
+        and time.monotonic() < deadline
+        and images_with_features(killed / "db.db") < 2
+    ):
         time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
@@ -202,8 +260,13 @@ def test_ray_flag_without_ray_is_a_clear_error(street, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # what an absent package looks like
     images, _, params = street
     with pytest.raises(RuntimeError, match=r"pip install 'rectified-colmap\[ray\]'"):
-        extract(images, database=tmp_path / "db.db", ray_address="local",
-                depth_model="none", progress=False)
+        extract(
+            images,
+            database=tmp_path / "db.db",
+            ray_address="local",
+            depth_model="none",
+            progress=False,
+        )
     assert not (tmp_path / "db.db").exists()
 
 
@@ -216,8 +279,10 @@ def test_identical_outputs_helper_sees_a_one_byte_change(single, tmp_path):
     con = sqlite3.connect(copy / "db.db")
     data = bytearray(con.execute("SELECT data FROM descriptors LIMIT 1").fetchone()[0])
     data[0] ^= 1
-    con.execute("UPDATE descriptors SET data = ? WHERE image_id = (SELECT MIN(image_id) "
-                "FROM descriptors)", (bytes(data),))
+    con.execute(
+        "UPDATE descriptors SET data = ? WHERE image_id = (SELECT MIN(image_id) FROM descriptors)",
+        (bytes(data),),
+    )
     con.commit()
     con.close()
     with pytest.raises(AssertionError):

@@ -35,18 +35,24 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_script():
-    spec = importlib.util.spec_from_file_location("aachen_hloc", ROOT / "scripts" / "aachen_hloc.py")
+    spec = importlib.util.spec_from_file_location(
+        "aachen_hloc", ROOT / "scripts" / "aachen_hloc.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
 def test_query_list_roundtrip_and_grouping(tmp_path):
-    a = pycolmap.Camera(model="SIMPLE_RADIAL", width=1600, height=1200,
-                        params=[1469.2, 800, 600, -0.035])
+    a = pycolmap.Camera(
+        model="SIMPLE_RADIAL", width=1600, height=1200, params=[1469.2, 800, 600, -0.035]
+    )
     b = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[500, 505, 320, 240])
-    cams = {"query/night/nexus5x/IMG_2.jpg": a, "query/day/x.jpg": b,
-            "query/night/nexus5x/IMG_1.jpg": a}
+    cams = {
+        "query/night/nexus5x/IMG_2.jpg": a,
+        "query/day/x.jpg": b,
+        "query/night/nexus5x/IMG_1.jpg": a,
+    }
     write_query_list(tmp_path / "q.txt", cams)
     back = read_query_list(tmp_path / "q.txt")
     assert list(back) == list(cams)
@@ -55,19 +61,27 @@ def test_query_list_roundtrip_and_grouping(tmp_path):
     groups = group_by_camera(back)
     assert [(g[0], g[2]) for g in groups] == [
         ("SIMPLE_RADIAL", ["query/night/nexus5x/IMG_1.jpg", "query/night/nexus5x/IMG_2.jpg"]),
-        ("PINHOLE", ["query/day/x.jpg"])]
+        ("PINHOLE", ["query/day/x.jpg"]),
+    ]
     (tmp_path / "bad.txt").write_text("a.jpg PINHOLE 640 480 500 320 240\n")
     with pytest.raises(ValueError, match="bad.txt:1: 3 params do not fit model PINHOLE"):
         read_query_list(tmp_path / "bad.txt")
 
 
 def test_pairs_filtering_and_io(tmp_path):
-    pairs = [("db/1.jpg", "db/2.jpg"), ("db/2.jpg", "db/1.jpg"), ("db/1.jpg", "db/9.jpg"),
-             ("query/q.jpg", "db/2.jpg"), ("db/3.jpg", "db/3.jpg")]
+    pairs = [
+        ("db/1.jpg", "db/2.jpg"),
+        ("db/2.jpg", "db/1.jpg"),
+        ("db/1.jpg", "db/9.jpg"),
+        ("query/q.jpg", "db/2.jpg"),
+        ("db/3.jpg", "db/3.jpg"),
+    ]
     model = {"db/1.jpg", "db/2.jpg", "db/3.jpg"}
     assert filter_pairs(pairs, model) == [("db/1.jpg", "db/2.jpg")]
-    assert filter_pairs(pairs, model, both=False) == [("db/1.jpg", "db/2.jpg"),
-                                                      ("query/q.jpg", "db/2.jpg")]
+    assert filter_pairs(pairs, model, both=False) == [
+        ("db/1.jpg", "db/2.jpg"),
+        ("query/q.jpg", "db/2.jpg"),
+    ]
     write_pair_list(tmp_path / "p.txt", pairs[:2])
     assert read_pair_list(tmp_path / "p.txt") == pairs[:2]
     with pytest.raises(ValueError, match="whitespace"):
@@ -83,9 +97,12 @@ def _posed_scene(n_cams=3, seed=0):
     cam = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[500, 500, 320, 240])
     feats, poses = {}, {}
     for k in range(n_cams):
-        T = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0, 0.05 * k, 0, 1]) /
-                                                 np.linalg.norm([0, 0.05 * k, 0, 1])),
-                             np.array([-0.6 * k, 0, 0]))
+        T = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(
+                np.array([0, 0.05 * k, 0, 1]) / np.linalg.norm([0, 0.05 * k, 0, 1])
+            ),
+            np.array([-0.6 * k, 0, 0]),
+        )
         Xc = X @ np.asarray(T.rotation.matrix()).T + np.asarray(T.translation)
         xy = np.asarray(cam.img_from_cam(Xc))
         feats[f"db/{k}.jpg"] = {"keypoints": xy, "descriptors": desc.T.copy()}
@@ -105,8 +122,11 @@ def test_undefined_geometries_are_ignored_then_fixed(tmp_path):
         pair_ids, geoms = db.read_two_view_geometries()
         for pid, g in zip(pair_ids, geoms):
             i, j = pycolmap.pair_id_to_image_pair(pid)
-            db.update_two_view_geometry(i, j, pycolmap.TwoViewGeometry(
-                inlier_matches=np.asarray(g.inlier_matches, np.uint32)))
+            db.update_two_view_geometry(
+                i,
+                j,
+                pycolmap.TwoViewGeometry(inlier_matches=np.asarray(g.inlier_matches, np.uint32)),
+            )
 
     def triangulate(out):
         # the posed model as build_reference makes it (one camera id per image)
@@ -115,8 +135,9 @@ def test_undefined_geometries_are_ignored_then_fixed(tmp_path):
             c = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=cam.params)
             c.camera_id = i
             rec.add_camera_with_trivial_rig(c)
-            rec.add_image_with_trivial_frame(pycolmap.Image(name=n, camera_id=i, image_id=i),
-                                             poses[n])
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=n, camera_id=i, image_id=i), poses[n]
+            )
         out.mkdir()
         return pycolmap.triangulate_points(rec, db_path, tmp_path, out).num_points3D()
 
@@ -130,8 +151,10 @@ def test_undefined_geometries_are_ignored_then_fixed(tmp_path):
 
 def test_results_file(tmp_path):
     T = pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([0.0, 1, 2]))
-    res = {"query/night/a.jpg": QueryResult("query/night/a.jpg", T),
-           "query/day/b.jpg": QueryResult("query/day/b.jpg", None)}
+    res = {
+        "query/night/a.jpg": QueryResult("query/night/a.jpg", T),
+        "query/day/b.jpg": QueryResult("query/day/b.jpg", None),
+    }
     write_poses(tmp_path / "r.txt", res)
     n, missing = check_results(tmp_path / "r.txt", list(res))
     assert n == 1 and missing == ["b.jpg"]
@@ -157,8 +180,13 @@ def test_script_hloc_checks(monkeypatch):
     def old_style(database_path, pairs_path, verbose=False):
         return (database_path, pairs_path)
 
-    avail = {"image_ids": 1, "reference": 2, "database_path": 3, "pairs_path": 4,
-             "features_path": 5}
+    avail = {
+        "image_ids": 1,
+        "reference": 2,
+        "database_path": 3,
+        "pairs_path": 4,
+        "features_path": 5,
+    }
     assert call_with(new_style, **avail) == (1, 2, 3, 4.0)
     assert call_with(old_style, **avail) == (3, 4)
     with pytest.raises(HlocError, match="needs"):
@@ -169,12 +197,18 @@ def _fake_triangulation(import_features):
     def f(*args, **kwargs):
         return None
 
-    return SimpleNamespace(create_db_from_model=f, import_features=import_features,
-                           import_matches=f, geometric_verification=f, run_triangulation=f)
+    return SimpleNamespace(
+        create_db_from_model=f,
+        import_features=import_features,
+        import_matches=f,
+        geometric_verification=f,
+        run_triangulation=f,
+    )
 
 
 def test_hloc_api_generation_by_signature():
     """Both generations say version 1.5: the signature tells them apart."""
+
     def new(image_ids, db, features_path):
         pass
 
@@ -215,13 +249,19 @@ def test_camera_database_feeds_extract(tmp_path, texture):
     for k, f in enumerate((300.0, 410.0)):
         name = f"db/{k}.png"
         cv2.imwrite(str(tmp_path / "img" / name), texture(240, 320, seed=k))
-        cams[name] = pycolmap.Camera(model="PINHOLE", width=320, height=240,
-                                     params=[f, f + 1, 160, 120])
+        cams[name] = pycolmap.Camera(
+            model="PINHOLE", width=320, height=240, params=[f, f + 1, 160, 120]
+        )
     cams["db/2.png"] = cams["db/0.png"]
     cv2.imwrite(str(tmp_path / "img" / "db/2.png"), texture(240, 320, seed=2))
     assert write_camera_database(tmp_path / "c.db", cams) == 2
-    s = extract(tmp_path / "img", database=tmp_path / "c.db", hloc_features=tmp_path / "f.h5",
-                depth_model=None, progress=False)
+    s = extract(
+        tmp_path / "img",
+        database=tmp_path / "c.db",
+        hloc_features=tmp_path / "f.h5",
+        depth_model=None,
+        progress=False,
+    )
     assert sorted(s.done) == sorted(cams) and not s.failed
     with pycolmap.Database.open(tmp_path / "c.db") as db:
         got = {im.name: db.read_camera(im.camera_id) for im in db.read_all_images()}
@@ -243,12 +283,14 @@ def test_mini_aachen_layout_and_errors(tmp_path, texture):
     for k in range(1, 8):
         name = f"{k:04d}.jpg"
         cv2.imwrite(str(scene / "images" / name), texture(400, 600, seed=k))
-        cam = pycolmap.Camera(model="PINHOLE", width=600, height=400,
-                              params=[500, 502, 300.5, 199.5], camera_id=k)
+        cam = pycolmap.Camera(
+            model="PINHOLE", width=600, height=400, params=[500, 502, 300.5, 199.5], camera_id=k
+        )
         rec.add_camera_with_trivial_rig(cam)
         rec.add_image_with_trivial_frame(
             pycolmap.Image(name=name, camera_id=k, image_id=k),
-            pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([0.5 * k, 0, 0])))
+            pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([0.5 * k, 0, 0])),
+        )
     (scene / "sparse").mkdir()
     rec.write(str(scene / "sparse"))
     p = make_mini_aachen(scene, tmp_path / "mini", max_size=300)
@@ -260,7 +302,8 @@ def test_mini_aachen_layout_and_errors(tmp_path, texture):
     np.testing.assert_allclose(q.params, [250, 251, 150.25, 99.75])
     ref = pycolmap.Reconstruction(str(p["reference_sfm"]))
     assert sorted(im.name for im in ref.images.values()) == [
-        f"db/{k:04d}.jpg" for k in (1, 3, 4, 6, 7)]
+        f"db/{k:04d}.jpg" for k in (1, 3, 4, 6, 7)
+    ]
     assert cv2.imread(str(p["images"] / "db/0001.jpg")).shape[:2] == (200, 300)
     assert len(read_pair_list(p["loc_pairs"])) == 2 * 5
     gt = p["ground_truth"].read_text().splitlines()

@@ -6,12 +6,17 @@ import numpy as np
 import pytest
 
 from rectified_colmap.conventions import to_opencv_homography
-from rectified_colmap.eval.homography import (HomographyConf, HomographyPair,
-                                              apply_homography,
-                                              colmap_homography_from_opencv,
-                                              evaluate_homography_pairs, homography_errors,
-                                              plane_normals_from_homography,
-                                              read_homography_pairs, visible_grid)
+from rectified_colmap.eval.homography import (
+    HomographyConf,
+    HomographyPair,
+    apply_homography,
+    colmap_homography_from_opencv,
+    evaluate_homography_pairs,
+    homography_errors,
+    plane_normals_from_homography,
+    read_homography_pairs,
+    visible_grid,
+)
 
 
 def rot(axis, deg):
@@ -23,12 +28,14 @@ def rot(axis, deg):
 def test_opencv_to_colmap_homography_is_the_inverse_of_conventions():
     rng = np.random.default_rng(0)
     G = np.eye(3) + 0.1 * rng.standard_normal((3, 3))
-    np.testing.assert_allclose(colmap_homography_from_opencv(to_opencv_homography(G)), G,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        colmap_homography_from_opencv(to_opencv_homography(G)), G, atol=1e-12
+    )
     # A pure scaling by 2 about OpenCV's origin: pixel centre 0 -> 0, i.e. COLMAP 0.5 -> 0.5.
     S = colmap_homography_from_opencv(np.diag([2.0, 2.0, 1.0]))
-    np.testing.assert_allclose(apply_homography(S, np.array([[0.5, 0.5], [1.5, 0.5]])),
-                               [[0.5, 0.5], [2.5, 0.5]])
+    np.testing.assert_allclose(
+        apply_homography(S, np.array([[0.5, 0.5], [1.5, 0.5]])), [[0.5, 0.5], [2.5, 0.5]]
+    )
 
 
 def pair_with(H, size0=(200, 100), size1=(200, 100)):
@@ -54,12 +61,16 @@ def test_errors_exact_for_known_offsets_and_visible_part_only():
 def test_sign_of_the_file_homography_does_not_matter(tmp_path):
     H = np.array([[1.0, 0.1, 5], [0, 1.2, 3], [1e-4, 0, 1]])
     f = tmp_path / "pairs.json"
-    f.write_text(json.dumps([{"im0": "a", "im1": "b", "H": (-H).tolist(), "size0": [200, 100],
-                              "size1": [200, 100]}]))
+    f.write_text(
+        json.dumps(
+            [{"im0": "a", "im1": "b", "H": (-H).tolist(), "size0": [200, 100], "size1": [200, 100]}]
+        )
+    )
     (p,) = read_homography_pairs(f)
     x = np.array([[10.0, 20.0], [150.0, 60.0]])
-    np.testing.assert_allclose(apply_homography(p.H, x),
-                               apply_homography(colmap_homography_from_opencv(H), x))
+    np.testing.assert_allclose(
+        apply_homography(p.H, x), apply_homography(colmap_homography_from_opencv(H), x)
+    )
     assert np.isfinite(apply_homography(p.H, x)).all()
 
 
@@ -91,8 +102,10 @@ def synthetic_features(H, n=300, seed=0, outliers=50):
     desc = rng.standard_normal((n, 128)).astype(np.float32)
     desc1 = desc + 0.05 * rng.standard_normal(desc.shape).astype(np.float32)
     x1[:outliers] = rng.uniform([0, 0], [200, 100], (outliers, 2))  # wrong positions
-    return ({"a": {"keypoints": x0, "descriptors": desc.T},
-             "b": {"keypoints": x1, "descriptors": desc1.T}})
+    return {
+        "a": {"keypoints": x0, "descriptors": desc.T},
+        "b": {"keypoints": x1, "descriptors": desc1.T},
+    }
 
 
 def test_evaluate_pairs_counts_gt_matches_and_solves_both_directions():
@@ -123,14 +136,42 @@ def test_cli_evaluate_homography(tmp_path):
             # Descriptors as uint8 RootSIFT-like bytes: positive, distinct per keypoint.
             d = f["descriptors"].T
             d = np.clip(np.abs(d) * 60, 0, 255).astype(np.uint8)
-            w.write(name, Features(kp, np.tile(np.eye(2), (len(kp), 1, 1)), d,
-                                   np.full(len(kp), -1, np.int32)), (200, 100))
+            w.write(
+                name,
+                Features(
+                    kp, np.tile(np.eye(2), (len(kp), 1, 1)), d, np.full(len(kp), -1, np.int32)
+                ),
+                (200, 100),
+            )
     pairs = tmp_path / "pairs.json"
-    pairs.write_text(json.dumps([{"pair": "syn", "im0": "a", "im1": "b",
-                                  "H": to_opencv_homography(H).tolist(),
-                                  "size0": [200, 100], "size1": [200, 100]}]))
+    pairs.write_text(
+        json.dumps(
+            [
+                {
+                    "pair": "syn",
+                    "im0": "a",
+                    "im1": "b",
+                    "H": to_opencv_homography(H).tolist(),
+                    "size0": [200, 100],
+                    "size1": [200, 100],
+                }
+            ]
+        )
+    )
     out = tmp_path / "out"
-    assert main(["evaluate-homography", "--pairs", str(pairs), "--features", f"m={h5}",
-                 "--output_dir", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate-homography",
+                "--pairs",
+                str(pairs),
+                "--features",
+                f"m={h5}",
+                "--output_dir",
+                str(out),
+            ]
+        )
+        == 0
+    )
     text = (out / "summary.md").read_text()
     assert "| m | 2 | 2 | 1 of 1 |" in text

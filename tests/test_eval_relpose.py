@@ -9,11 +9,21 @@ import pytest
 from rectified_colmap.config import EvalConf
 from rectified_colmap.eval import report
 from rectified_colmap.eval.matching import FeatureSource, match_ratio
-from rectified_colmap.eval.pairs import (Pair, format_pair_line, parse_pair_line,
-                                         read_pairs_with_gt, read_strong_viewpoint_changes,
-                                         rotation_angle_deg, write_pairs_with_gt)
-from rectified_colmap.eval.relpose import (evaluate_pairs, fundamental_from_pose,
-                                           pose_errors, sampson_error)
+from rectified_colmap.eval.pairs import (
+    Pair,
+    format_pair_line,
+    parse_pair_line,
+    read_pairs_with_gt,
+    read_strong_viewpoint_changes,
+    rotation_angle_deg,
+    write_pairs_with_gt,
+)
+from rectified_colmap.eval.relpose import (
+    evaluate_pairs,
+    fundamental_from_pose,
+    pose_errors,
+    sampson_error,
+)
 
 K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
 
@@ -59,7 +69,7 @@ def synthetic_scene(angles, n_points=600, noise_px=0.3, distractors=200, seed=0)
 def make_pairs(poses, names):
     out = []
     for i, a in enumerate(names):
-        for b in names[i + 1:]:
+        for b in names[i + 1 :]:
             (Ra, ta), (Rb, tb) = poses[a], poses[b]
             T = np.eye(4)
             T[:3, :3] = Rb @ Ra.T
@@ -95,8 +105,9 @@ def test_svc_reader_bins_by_rotation(tmp_path):
     T = np.eye(4)
     T[:3, :3] = rot([0, 1, 0], 95)
     (tmp_path / "sceneA").mkdir()
-    write_pairs_with_gt(tmp_path / "sceneA" / "pairs_with_gt.txt",
-                        [Pair("i/0.jpg", "i/1.jpg", K, K, T)])
+    write_pairs_with_gt(
+        tmp_path / "sceneA" / "pairs_with_gt.txt", [Pair("i/0.jpg", "i/1.jpg", K, K, T)]
+    )
     (tmp_path / "junk").mkdir()
     pairs = read_strong_viewpoint_changes(tmp_path)
     assert [(p.name0, p.category) for p in pairs] == [("sceneA/i/0.jpg", "90-100")]
@@ -130,8 +141,8 @@ def test_sampson_and_pose_errors():
     x0, x1 = x0[:, :2] / x0[:, 2:], x1[:, :2] / x1[:, 2:]
     assert sampson_error(F, x0, x1).max() < 1e-6
     # moving x1 along the epipolar line keeps the error ~0; across it, it grows
-    l = np.concatenate([x0, np.ones((50, 1))], 1) @ F.T
-    n = l[:, :2] / np.linalg.norm(l[:, :2], axis=1, keepdims=True)
+    ep = np.concatenate([x0, np.ones((50, 1))], 1) @ F.T
+    n = ep[:, :2] / np.linalg.norm(ep[:, :2], axis=1, keepdims=True)
     along = np.stack([-n[:, 1], n[:, 0]], 1)
     assert sampson_error(F, x0, x1 + 20 * along).max() < 1e-6
     assert sampson_error(F, x0, x1 + 20 * n).min() > 5
@@ -187,17 +198,23 @@ def test_evaluate_pairs_workers_and_h5(tmp_path):
             g["descriptors"] = d["descriptors"].astype(np.float16)
             g["image_size"] = np.array([320, 240])
     mapped = {f"sub/{n}": d for n, d in feats.items()}
-    pairs = [Pair("sub/" + p.name0, "sub/" + p.name1, p.K0, p.K1, p.T_0to1)
-             for p in make_pairs(poses, sorted(feats))]
+    pairs = [
+        Pair("sub/" + p.name0, "sub/" + p.name1, p.K0, p.K1, p.T_0to1)
+        for p in make_pairs(poses, sorted(feats))
+    ]
     a = evaluate_pairs(pairs, {"h5": path}, num_workers=2, progress=False)
     b = evaluate_pairs(pairs, {"mem": mapped}, num_workers=1, progress=False)
     assert [r["num_correct"] for r in a] == pytest.approx([r["num_correct"] for r in b], abs=3)
     assert all(r["success"] for r in a)
     assert FeatureSource(path)["sub/cam0.jpg"]["keypoints"] == pytest.approx(
-        feats["cam0.jpg"]["keypoints"], abs=1e-3)
+        feats["cam0.jpg"]["keypoints"], abs=1e-3
+    )
     with pytest.raises(ValueError, match="no features for 1 image"):
-        evaluate_pairs(pairs + [Pair("sub/x.jpg", "sub/cam0.jpg", K, K, np.eye(4))],
-                       {"h5": path}, progress=False)
+        evaluate_pairs(
+            pairs + [Pair("sub/x.jpg", "sub/cam0.jpg", K, K, np.eye(4))],
+            {"h5": path},
+            progress=False,
+        )
 
 
 def test_cli_evaluate_pairs(tmp_path):
@@ -214,17 +231,38 @@ def test_cli_evaluate_pairs(tmp_path):
                 g["keypoints"] = (d["keypoints"] - 0.5).astype(np.float32)
                 g["descriptors"] = d["descriptors"].astype(np.float32)
     write_pairs_with_gt(tmp_path / "pairs.txt", make_pairs(poses, sorted(feats)))
-    rc = main(["evaluate-pairs", "--pairs", str(tmp_path / "pairs.txt"), "--features",
-               f"a={tmp_path / 'a.h5'}", f"b={tmp_path / 'b.h5'}", "--output_dir",
-               str(tmp_path / "out"), "--bin_deg", "30", "--no_progress"])
+    rc = main(
+        [
+            "evaluate-pairs",
+            "--pairs",
+            str(tmp_path / "pairs.txt"),
+            "--features",
+            f"a={tmp_path / 'a.h5'}",
+            f"b={tmp_path / 'b.h5'}",
+            "--output_dir",
+            str(tmp_path / "out"),
+            "--bin_deg",
+            "30",
+            "--no_progress",
+        ]
+    )
     assert rc == 0
     md = (tmp_path / "out" / "summary.md").read_text()
     assert "| a | 3 | 100.0 |" in md and "| b | 3 | 100.0 |" in md
     png = (tmp_path / "out" / "success.png").read_bytes()
     assert png[:4] == b"\x89PNG" and len(png) > 5000
     with pytest.raises(SystemExit, match="is not a file"):
-        main(["evaluate-pairs", "--pairs", str(tmp_path / "pairs.txt"), "--features",
-              f"a={tmp_path / 'missing.h5'}", "--output_dir", str(tmp_path / "o2")])
+        main(
+            [
+                "evaluate-pairs",
+                "--pairs",
+                str(tmp_path / "pairs.txt"),
+                "--features",
+                f"a={tmp_path / 'missing.h5'}",
+                "--output_dir",
+                str(tmp_path / "o2"),
+            ]
+        )
 
 
 def test_svc_reader_from_model_and_pair_selection(tmp_path):
@@ -236,8 +274,10 @@ def test_svc_reader_from_model_and_pair_selection(tmp_path):
     rec.add_camera_with_trivial_rig(cam)
     for i, a in enumerate([0, 35, 100], 1):
         R, t = orbit_pose(a)
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{i}.jpg", camera_id=1, image_id=i),
-                                         pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{i}.jpg", camera_id=1, image_id=i),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t),
+        )
     (tmp_path / "s1" / "sparse").mkdir(parents=True)
     rec.write_text(str(tmp_path / "s1" / "sparse"))
     (tmp_path / "s1" / "pairs.txt").write_text("1.jpg 3.jpg hard\n")
@@ -262,8 +302,14 @@ def test_binomial_p_exact():
 
 def test_paired_comparison_counts_discordant_pairs():
     def rec(method, i, rot, success, correct):
-        return {"name0": f"a{i}", "name1": f"b{i}", "method": method, "gt_rot": rot,
-                "success": success, "num_correct": correct}
+        return {
+            "name0": f"a{i}",
+            "name1": f"b{i}",
+            "method": method,
+            "gt_rot": rot,
+            "success": success,
+            "num_correct": correct,
+        }
 
     recs = []
     for i in range(12):  # bin 0-10: both solve; bin 60-70: the method solves 6 more

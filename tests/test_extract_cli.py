@@ -35,20 +35,40 @@ def scene(tmp_path_factory):
 
 def _db_rows(db):
     with sqlite3.connect(db) as con:
-        kp = dict(con.execute("SELECT i.name, k.cols FROM keypoints k JOIN images i "
-                              "ON i.image_id = k.image_id").fetchall())
-        n = dict(con.execute("SELECT i.name, k.rows FROM keypoints k JOIN images i "
-                             "ON i.image_id = k.image_id").fetchall())
+        kp = dict(
+            con.execute(
+                "SELECT i.name, k.cols FROM keypoints k JOIN images i ON i.image_id = k.image_id"
+            ).fetchall()
+        )
+        n = dict(
+            con.execute(
+                "SELECT i.name, k.rows FROM keypoints k JOIN images i ON i.image_id = k.image_id"
+            ).fetchall()
+        )
     return kp, n
 
 
 def test_cli_extract_writes_both_formats_reports_bad_image_and_resumes(scene, tmp_path):
     images, depths = scene
     db, h5 = tmp_path / "db.db", tmp_path / "f.h5"
-    args = ["extract", "--database_path", str(db), "--image_path", str(images),
-            "--depth_path", str(depths), "--depth_model", "none",
-            "--camera_model", "PINHOLE", "--camera_params", PARAMS,
-            "--hloc_features", str(h5), "--no_progress"]
+    args = [
+        "extract",
+        "--database_path",
+        str(db),
+        "--image_path",
+        str(images),
+        "--depth_path",
+        str(depths),
+        "--depth_model",
+        "none",
+        "--camera_model",
+        "PINHOLE",
+        "--camera_params",
+        PARAMS,
+        "--hloc_features",
+        str(h5),
+        "--no_progress",
+    ]
     assert main(args) == 1  # broken.png failed, the rest went on
     cols, rows = _db_rows(db)
     assert sorted(cols) == ["sub/0.png", "sub/1.png", "sub/2.png"]
@@ -61,9 +81,16 @@ def test_cli_extract_writes_both_formats_reports_bad_image_and_resumes(scene, tm
         np.testing.assert_array_equal(g["image_size"][()], [400, 300])
     # resume: nothing is redone, nothing duplicated
     mtime = h5.stat().st_mtime_ns
-    summary = extract(images, database=db, hloc_features=h5, depth_path=depths,
-                      depth_model="none", camera_model="PINHOLE", camera_params=PARAMS,
-                      progress=False)
+    summary = extract(
+        images,
+        database=db,
+        hloc_features=h5,
+        depth_path=depths,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        progress=False,
+    )
     assert sorted(summary.skipped) == sorted(cols)
     assert list(summary.failed) == ["sub/broken.png"]
     assert "cannot decode" in summary.failed["sub/broken.png"]
@@ -78,8 +105,13 @@ def test_cli_extract_writes_both_formats_reports_bad_image_and_resumes(scene, tm
 def test_extract_rectifies_with_depth_and_is_plain_without(scene, tmp_path):
     images, depths = scene
     names = ["sub/0.png", "sub/1.png"]
-    kw = dict(image_list=names, depth_model="none", camera_model="PINHOLE",
-              camera_params=PARAMS, progress=False)
+    kw = dict(
+        image_list=names,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        progress=False,
+    )
     with_depth = extract(images, hloc_features=tmp_path / "r.h5", depth_path=depths, **kw)
     without = extract(images, hloc_features=tmp_path / "p.h5", **kw)
     assert with_depth.ok and without.ok
@@ -99,9 +131,18 @@ def test_extract_rectifies_with_depth_and_is_plain_without(scene, tmp_path):
 def test_single_camera_and_workers(scene, tmp_path):
     images, depths = scene
     db = tmp_path / "db.db"
-    s = extract(images, database=db, image_list=["sub/0.png", "sub/1.png", "sub/2.png"],
-                depth_path=depths, depth_model="none", camera_model="PINHOLE",
-                camera_params=PARAMS, single_camera=True, num_workers=2, progress=False)
+    s = extract(
+        images,
+        database=db,
+        image_list=["sub/0.png", "sub/1.png", "sub/2.png"],
+        depth_path=depths,
+        depth_model="none",
+        camera_model="PINHOLE",
+        camera_params=PARAMS,
+        single_camera=True,
+        num_workers=2,
+        progress=False,
+    )
     assert s.ok and len(s.done) == 3
     with sqlite3.connect(db) as con:
         assert con.execute("SELECT COUNT(DISTINCT camera_id) FROM images").fetchone()[0] == 1
@@ -110,7 +151,19 @@ def test_single_camera_and_workers(scene, tmp_path):
 
 def test_cli_rejects_params_without_model(scene, tmp_path, caplog):
     images, _ = scene
-    assert main(["extract", "--database", str(tmp_path / "x.db"), "--image_path",
-                 str(images), "--camera_params", "1,2,3,4"]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--database",
+                str(tmp_path / "x.db"),
+                "--image_path",
+                str(images),
+                "--camera_params",
+                "1,2,3,4",
+            ]
+        )
+        == 2
+    )
     assert "--camera_params needs --camera_model" in caplog.text
     assert not (tmp_path / "x.db").exists()

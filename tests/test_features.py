@@ -3,9 +3,15 @@ import pycolmap
 import pytest
 
 from rectified_colmap.config import SiftConf
-from rectified_colmap.features import (Features, coarse_first_pays, count_detections,
-                                       detect_sift, keypoints_in_mask, similarity_frames,
-                                       split_budget)
+from rectified_colmap.features import (
+    Features,
+    coarse_first_pays,
+    count_detections,
+    detect_sift,
+    keypoints_in_mask,
+    similarity_frames,
+    split_budget,
+)
 from tests.conftest import textured_image
 
 
@@ -13,8 +19,9 @@ def test_similarity_frames_match_pycolmap_affine_shape():
     img = textured_image(160, 200, 1)
     opts = pycolmap.FeatureExtractionOptions()
     opts.num_threads = 1
-    kps, _ = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu) \
-        .extract_from_uint8_array(img)
+    kps, _ = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu).extract_from_uint8_array(
+        img
+    )
     m = np.asarray(pycolmap.keypoints_to_matrix(kps))
     ours = similarity_frames(m[:, 2].astype(float), m[:, 3].astype(float))
     theirs = np.array([[[k.a11, k.a12], [k.a21, k.a22]] for k in kps])
@@ -25,8 +32,9 @@ def test_detect_sift_is_plain_colmap_sift():
     img = textured_image(160, 200, 2)
     f = detect_sift(img, SiftConf())
     opts = pycolmap.FeatureExtractionOptions()
-    kps, desc = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu) \
-        .extract_from_uint8_array(img)
+    kps, desc = pycolmap.FeatureExtractor.create(
+        opts, pycolmap.Device.cpu
+    ).extract_from_uint8_array(img)
     ref = np.asarray(pycolmap.keypoints_to_matrix(kps))
     assert len(f) == len(ref) > 50
     np.testing.assert_allclose(f.keypoints, ref[:, :2], atol=1e-4)
@@ -66,13 +74,18 @@ def test_keypoints_in_mask_uses_colmap_convention():
     mask = np.zeros((2, 2), bool)
     mask[0, 1] = True  # top-right cell of a 2x2 grid covering a 10x10 image
     xy = np.array([[5.01, 0.5], [4.99, 0.5], [9.99, 4.99], [9.99, 5.01], [-1, 1]])
-    np.testing.assert_array_equal(keypoints_in_mask(xy, mask, (10, 10)),
-                                  [True, False, True, False, False])
+    np.testing.assert_array_equal(
+        keypoints_in_mask(xy, mask, (10, 10)), [True, False, True, False, False]
+    )
 
 
 def test_features_container():
-    f = Features(np.array([[1.0, 2.0]]), similarity_frames(np.array([2.0]), np.array([0.3])),
-                 np.zeros((1, 128), np.uint8), np.array([3], np.int32))
+    f = Features(
+        np.array([[1.0, 2.0]]),
+        similarity_frames(np.array([2.0]), np.array([0.3])),
+        np.zeros((1, 128), np.uint8),
+        np.array([3], np.int32),
+    )
     np.testing.assert_allclose(f.scales, [2.0])
     np.testing.assert_allclose(f.orientations, [0.3])
     g = Features.concatenate([f, Features.empty(), f])
@@ -85,8 +98,9 @@ def _sift_matrix(img, n, first_octave=-1, num_octaves=4):
     opts.sift.max_num_features = n
     opts.sift.first_octave = first_octave
     opts.sift.num_octaves = num_octaves
-    kps, desc = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu) \
-        .extract_from_uint8_array(img)
+    kps, desc = pycolmap.FeatureExtractor.create(
+        opts, pycolmap.Device.cpu
+    ).extract_from_uint8_array(img)
     return np.asarray(pycolmap.keypoints_to_matrix(kps), np.float64), np.asarray(desc.data)
 
 
@@ -98,7 +112,7 @@ def test_colmap_budget_keeps_coarsest_levels_whole():
     assert count_detections(full) < len(full)  # some points have two orientations
     for n in (50, 200, 800):
         part, _ = _sift_matrix(img, n)
-        np.testing.assert_array_equal(part, full[len(full) - len(part):])
+        np.testing.assert_array_equal(part, full[len(full) - len(part) :])
         assert count_detections(part) > n
         assert len(part) < len(full)
 

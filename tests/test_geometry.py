@@ -4,9 +4,16 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.geometry import (angle_between_deg, angle_deg, order_frame, rays_from_K,
-                                       rotation_angle_deg, scaled_size, skew,
-                                       smallest_rotation)
+from rectified_colmap.geometry import (
+    angle_between_deg,
+    angle_deg,
+    order_frame,
+    rays_from_K,
+    rotation_angle_deg,
+    scaled_size,
+    skew,
+    smallest_rotation,
+)
 
 
 def _unit(v):
@@ -14,6 +21,7 @@ def _unit(v):
 
 
 # -- the former copies, verbatim (references for bit-equality) --------------------------------
+
 
 def _old_skew(v):  # eval/relpose.py
     x, y, z = v
@@ -31,8 +39,7 @@ def _old_rectifying_rotation(normal):  # rectify.py
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
     axis /= s
     angle = np.arctan2(s, c)
-    Kx = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]],
-                   [-axis[1], axis[0], 0.0]])
+    Kx = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
     return np.eye(3) + np.sin(angle) * Kx + (1.0 - np.cos(angle)) * (Kx @ Kx)
 
 
@@ -60,9 +67,16 @@ def _old_shift_size(w0, h0, max_size, work_max_size):  # depth/shift.py
 
 def _old_rays_from_K(K, width, height):  # training/evaluate.py
     from rectified_colmap.conventions import pixel_centers
+
     xy = pixel_centers(width, height)
-    return np.stack([(xy[..., 0] - K[0, 2]) / K[0, 0], (xy[..., 1] - K[1, 2]) / K[1, 1],
-                     np.ones((height, width))], -1).astype(np.float32)
+    return np.stack(
+        [
+            (xy[..., 0] - K[0, 2]) / K[0, 0],
+            (xy[..., 1] - K[1, 2]) / K[1, 1],
+            np.ones((height, width)),
+        ],
+        -1,
+    ).astype(np.float32)
 
 
 def _old_canonical(D, counts):  # planes.py
@@ -82,13 +96,13 @@ def _old_rotation_angle_deg(R):  # eval/pairs.py
 
 # -- tests ---------------------------------------------------------------------------------------
 
+
 def test_skew_cross_product_and_shapes():
     rng = np.random.default_rng(0)
     v, w = rng.normal(size=(5, 4, 3)), rng.normal(size=(5, 4, 3))
     S = skew(v)
     assert S.shape == (5, 4, 3, 3) and S.dtype == np.float64
-    np.testing.assert_allclose(np.einsum("...ij,...j->...i", S, w), np.cross(v, w),
-                               atol=1e-12)
+    np.testing.assert_allclose(np.einsum("...ij,...j->...i", S, w), np.cross(v, w), atol=1e-12)
     np.testing.assert_array_equal(S, -np.swapaxes(S, -1, -2))
     for x in rng.normal(size=(50, 3)):
         assert np.array_equal(skew(x), _old_skew(x))
@@ -120,8 +134,15 @@ def test_smallest_rotation_properties():
 def test_smallest_rotation_equals_former_rectifying_rotation():
     z = np.array([0.0, 0.0, 1.0])
     rng = np.random.default_rng(2)
-    normals = [*rng.normal(size=(200, 3)), [0, 0, -1.0], [0, 0, 1.0], [1e-13, 0, 1.0],
-               [0, 1e-13, -1.0], [3.0, 0, 0], [0, -2.0, 0]]
+    normals = [
+        *rng.normal(size=(200, 3)),
+        [0, 0, -1.0],
+        [0, 0, 1.0],
+        [1e-13, 0, 1.0],
+        [0, 1e-13, -1.0],
+        [3.0, 0, 0],
+        [0, -2.0, 0],
+    ]
     for n in normals:
         a = -np.asarray(n, dtype=np.float64)
         a = a / np.linalg.norm(a)
@@ -170,8 +191,13 @@ def test_scaled_size():
     assert scaled_size(100, 50, 640) == (100, 50)  # never upscaled
     assert scaled_size(4000, 10, 100) == (100, 8)  # min_side
     assert scaled_size(4000, 10, 100, min_side=1) == (100, 1)
-    for w, h, m, m2 in [(1536, 1024, 160, 640), (333, 999, 160, 80), (7, 5, 160, 640),
-                        (4032, 3024, 160, 1024), (1000, 1, 160, 640)]:
+    for w, h, m, m2 in [
+        (1536, 1024, 160, 640),
+        (333, 999, 160, 80),
+        (7, 5, 160, 640),
+        (4032, 3024, 160, 1024),
+        (1000, 1, 160, 640),
+    ]:
         assert scaled_size(w, h, m) == _old_work_size(w, h, m)
         assert scaled_size(w, h, min(m, m2)) == _old_shift_size(w, h, m, m2)
 

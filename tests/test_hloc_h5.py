@@ -27,8 +27,9 @@ def random_features(n: int, seed: int, size=(1500, 1000)) -> Features:
     rng = np.random.default_rng(seed)
     xy = rng.random((n, 2)) * size
     shapes = similarity_frames(rng.uniform(1, 8, n), rng.uniform(-np.pi, np.pi, n))
-    return Features(xy, shapes, rng.integers(0, 256, (n, 128), dtype=np.uint8),
-                    np.full(n, -1, np.int32))
+    return Features(
+        xy, shapes, rng.integers(0, 256, (n, 128), dtype=np.uint8), np.full(n, -1, np.int32)
+    )
 
 
 NAMES = ["db/1045.jpg", "query/night/nexus5x/IMG_1.jpg", "top.png", "db/1046.jpg"]
@@ -38,9 +39,11 @@ def hloc_list_h5_names(path: Path) -> list[str]:
     """What hloc.utils.io.list_h5_names does: the parents of all datasets."""
     names = []
     with h5py.File(path, "r", libver="latest") as fd:
+
         def visit(_, obj):
             if isinstance(obj, h5py.Dataset):
                 names.append(obj.parent.name.strip("/"))
+
         fd.visititems(visit)
     return list(set(names))
 
@@ -77,16 +80,13 @@ def test_schema_mirrors_hloc_readers(tmp_path, as_half):
             d = g["descriptors"][()]
             assert d.shape == (128, len(f))
             assert d.dtype == (np.float16 if as_half else np.float32)
-            np.testing.assert_allclose(np.linalg.norm(d.astype(np.float64), axis=0), 1,
-                                       atol=2e-3)
-            ref = f.descriptors / np.linalg.norm(f.descriptors.astype(float), axis=1,
-                                                 keepdims=True)
+            np.testing.assert_allclose(np.linalg.norm(d.astype(np.float64), axis=0), 1, atol=2e-3)
+            ref = f.descriptors / np.linalg.norm(f.descriptors.astype(float), axis=1, keepdims=True)
             np.testing.assert_allclose(d.T, ref, atol=1e-3 if as_half else 1e-6)
             size = g["image_size"][()]
             assert size.dtype.kind == "i" and list(size) == [1500, 1000]
             np.testing.assert_allclose(g["scales"][()], f.scales, rtol=1e-6)
-            np.testing.assert_allclose(g["oris"][()], np.rad2deg(f.orientations),
-                                       atol=1e-4)
+            np.testing.assert_allclose(g["oris"][()], np.rad2deg(f.orientations), atol=1e-4)
             assert g["scores"].shape == (len(f),)
     # match_features + NN-ratio: dot products of unit descriptors are cosines
     a = hloc_pair_inputs(path, NAMES[0])
@@ -227,8 +227,9 @@ def test_kill9_at_random_moments_then_resume(tmp_path):
     # two kills aimed at the dangerous moments (inside a merge, inside a staging write),
     # then kills after a random number of images plus a random delay
     for mode in ["merge", "stage", "random", "random", "random", "random", "random"]:
-        proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE,
-                                stderr=subprocess.DEVNULL, text=True)
+        proc = subprocess.Popen(
+            args, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        )
         if mode == "random":
             for _ in range(rng.integers(1, 6)):
                 proc.stdout.readline()
@@ -241,8 +242,9 @@ def test_kill9_at_random_moments_then_resume(tmp_path):
                 time.sleep(2e-4)
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        caught.append(merging.exists() if mode == "merge" else
-                      staging_tmp(stage) if mode == "stage" else None)
+        caught.append(
+            merging.exists() if mode == "merge" else staging_tmp(stage) if mode == "stage" else None
+        )
         # both files are valid right after the kill
         if h5_path.exists():
             validate(h5_path)
@@ -276,5 +278,4 @@ def test_kill9_at_random_moments_then_resume(tmp_path):
         ref = np.random.default_rng(int(i)).random((1500 + 10 * int(i), 2)) * 1000
         np.testing.assert_allclose(r["keypoints"], ref, atol=1e-3)
     with pycolmap.Database.open(db_path) as pdb:
-        assert pdb.num_images() == n and pdb.num_keypoints() == sum(
-            1500 + 10 * i for i in range(n))
+        assert pdb.num_images() == n and pdb.num_keypoints() == sum(1500 + 10 * i for i in range(n))

@@ -40,24 +40,30 @@ try:
 except A.HlocError as e:
     HLOC_MISSING = str(e)
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(HLOC_MISSING is not None, reason=f"{HLOC_MISSING}")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(HLOC_MISSING is not None, reason=f"{HLOC_MISSING}"),
+]
 
 
 def needs(path: Path):
     if not path.is_dir():
-        pytest.skip(f"{path} not found (shared data beside the checkout, or set "
-                    "RECTIFIED_COLMAP_SHARED)")
+        pytest.skip(
+            f"{path} not found (shared data beside the checkout, or set RECTIFIED_COLMAP_SHARED)"
+        )
 
 
 def load_script():
-    spec = importlib.util.spec_from_file_location("aachen_hloc", ROOT / "scripts" / "aachen_hloc.py")
+    spec = importlib.util.spec_from_file_location(
+        "aachen_hloc", ROOT / "scripts" / "aachen_hloc.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
 # -- mini Aachen from Strecha fountain-P11 ---------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def mini(tmp_path_factory):
@@ -67,12 +73,27 @@ def mini(tmp_path_factory):
     script = load_script()
     out = {}
     for method in ("rectsift", "sift"):
-        argv = ["--dataset", str(root / "dataset"), "--outputs", str(root / method),
-                "--method", method, "--max_num_features", str(NUM_FEATURES),
-                "--num_workers", "1"]
+        argv = [
+            "--dataset",
+            str(root / "dataset"),
+            "--outputs",
+            str(root / method),
+            "--method",
+            method,
+            "--max_num_features",
+            str(NUM_FEATURES),
+            "--num_workers",
+            "1",
+        ]
         if method == "rectsift":  # the first run builds the dataset
-            argv += ["--make_mini_from", str(FOUNTAIN), "--max_size", str(MAX_SIZE),
-                     "--num_queries", str(NUM_QUERIES)]
+            argv += [
+                "--make_mini_from",
+                str(FOUNTAIN),
+                "--max_size",
+                str(MAX_SIZE),
+                "--num_queries",
+                str(NUM_QUERIES),
+            ]
         out[method] = script.run(script.parser().parse_args(argv))
     return SimpleNamespace(root=root, dataset=root / "dataset", **out)
 
@@ -116,16 +137,29 @@ def test_stock_triangulation_trap_and_fixes(mini, tmp_path):
     stock = triangulation.main(tmp_path / "stock", ref, images, pairs, feats, matches)
     assert stock.num_points3D() == 0, "hloc/pycolmap fixed the UNDEFINED trap: update docs"
     results = tmp_path / "stock.txt"
-    localize_sfm.main(stock, d / "queries" / "*_time_queries_with_intrinsics.txt",
-                      d / "pairs-query-exhaustive.txt", feats, o / "matches-loc.h5", results)
+    localize_sfm.main(
+        stock,
+        d / "queries" / "*_time_queries_with_intrinsics.txt",
+        d / "pairs-query-exhaustive.txt",
+        feats,
+        o / "matches-loc.h5",
+        results,
+    )
     fallbacks = A.localize_sfm_fallbacks(results)
     assert len(fallbacks) == NUM_QUERIES  # every query "localized" at a database pose
     errors = A.localization_errors(results, d / "ground_truth.txt")
     assert all(dt > 0.25 for dt, _ in errors.values()), errors
     assert A.recall(errors, failed=fallbacks) == [0.0, 0.0, 0.0]
 
-    est = triangulation.main(tmp_path / "estimated", ref, images, pairs, feats, matches,
-                             estimate_two_view_geometries=True)
+    est = triangulation.main(
+        tmp_path / "estimated",
+        ref,
+        images,
+        pairs,
+        feats,
+        matches,
+        estimate_two_view_geometries=True,
+    )
     ours = A.triangulate_with_hloc(ref, tmp_path / "ours", images, pairs, feats, matches)
     assert ours.num_points3D() == mini.sift["points3D"]
     assert est.num_points3D() > 0.5 * ours.num_points3D()
@@ -141,33 +175,56 @@ def test_older_hloc_api_generation(mini, tmp_path, monkeypatch):
         with pycolmap.Database.open(database_path) as db:
             new.import_features(image_ids, db, features_path)
 
-    def import_matches(image_ids, database_path, pairs_path, matches_path,
-                       min_match_score=None, skip_geometric_verification=False):
+    def import_matches(
+        image_ids,
+        database_path,
+        pairs_path,
+        matches_path,
+        min_match_score=None,
+        skip_geometric_verification=False,
+    ):
         with pycolmap.Database.open(database_path) as db:
-            new.import_matches(image_ids, db, pairs_path, matches_path, min_match_score,
-                               skip_geometric_verification)
+            new.import_matches(
+                image_ids,
+                db,
+                pairs_path,
+                matches_path,
+                min_match_score,
+                skip_geometric_verification,
+            )
 
-    def geometric_verification(image_ids, reference, database_path, features_path,
-                               pairs_path, matches_path, max_error=4.0):
+    def geometric_verification(
+        image_ids, reference, database_path, features_path, pairs_path, matches_path, max_error=4.0
+    ):
         with pycolmap.Database.open(database_path) as db:
-            new.geometric_verification(image_ids, reference, db, features_path, pairs_path,
-                                       matches_path, max_error)
+            new.geometric_verification(
+                image_ids, reference, db, features_path, pairs_path, matches_path, max_error
+            )
 
-    old = SimpleNamespace(create_db_from_model=new.create_db_from_model,
-                          import_features=import_features, import_matches=import_matches,
-                          geometric_verification=geometric_verification,
-                          run_triangulation=new.run_triangulation)
+    old = SimpleNamespace(
+        create_db_from_model=new.create_db_from_model,
+        import_features=import_features,
+        import_matches=import_matches,
+        geometric_verification=geometric_verification,
+        run_triangulation=new.run_triangulation,
+    )
     assert A.hloc_generation(new) == "db" and A.hloc_generation(old) == "path"
     monkeypatch.setattr(hloc, "triangulation", old)
     monkeypatch.setitem(sys.modules, "hloc.triangulation", old)
     d, o = mini.dataset, mini.root / "sift"
-    rec = A.triangulate_with_hloc(d / "3D-models" / "reference", tmp_path / "old",
-                                  d / "images" / "images_upright", o / "pairs-db-exhaustive.txt",
-                                  o / "feats-sift.h5", o / "matches-db.h5")
+    rec = A.triangulate_with_hloc(
+        d / "3D-models" / "reference",
+        tmp_path / "old",
+        d / "images" / "images_upright",
+        o / "pairs-db-exhaustive.txt",
+        o / "feats-sift.h5",
+        o / "matches-db.h5",
+    )
     assert rec.num_points3D() == mini.sift["points3D"]
 
 
 # -- Sacre Coeur (hloc's demo photos): match_features + reconstruction.main ------------------
+
 
 @pytest.fixture(scope="module")
 def sacre_coeur(tmp_path_factory):
@@ -197,17 +254,29 @@ def sacre_coeur(tmp_path_factory):
         feats = root / f"feats-{method}.h5"
         conf = ExtractConf.from_dict(confs[method])
         conf.sift.max_num_features = NUM_FEATURES
-        summary = extract(images, hloc_features=feats, conf=conf, progress=False,
-                          depth_model=DEFAULT_DEPTH_MODEL if method == "rectsift" else None)
+        summary = extract(
+            images,
+            hloc_features=feats,
+            conf=conf,
+            progress=False,
+            depth_model=DEFAULT_DEPTH_MODEL if method == "rectsift" else None,
+        )
         assert not summary.failed, summary.failed
         pairs = root / f"pairs-{method}.txt"
         pairs_from_exhaustive.main(pairs, features=feats)
         matches = root / f"matches-{method}.h5"
-        match_features.main(match_features.confs["NN-ratio"], pairs, features=feats,
-                            matches=matches)
+        match_features.main(
+            match_features.confs["NN-ratio"], pairs, features=feats, matches=matches
+        )
         rec = reconstruction.main(root / f"sfm-{method}", images, pairs, feats, matches)
-        out[method] = SimpleNamespace(features=feats, pairs=pairs, matches=matches, rec=rec,
-                                      rec_dir=root / f"sfm-{method}", summary=summary)
+        out[method] = SimpleNamespace(
+            features=feats,
+            pairs=pairs,
+            matches=matches,
+            rec=rec,
+            rec_dir=root / f"sfm-{method}",
+            summary=summary,
+        )
     return SimpleNamespace(images=images, **out)
 
 
@@ -260,8 +329,11 @@ def test_lightglue_orientation_convention(sacre_coeur):
 
     name = "02928139_3448003521.jpg"
     img = cv2.imread(str(sacre_coeur.images / name), cv2.IMREAD_GRAYSCALE)
-    sift = pycolmap.Sift(options=pycolmap.FeatureExtractionOptions(
-        sift=pycolmap.SiftExtractionOptions(max_num_features=NUM_FEATURES)))
+    sift = pycolmap.Sift(
+        options=pycolmap.FeatureExtractionOptions(
+            sift=pycolmap.SiftExtractionOptions(max_num_features=NUM_FEATURES)
+        )
+    )
     kp, _ = sift.extract(img.astype(np.float32) / 255)
     dst = sacre_coeur.images.parent / "feats-sift-lightglue.h5"
     assert A.convert_oris_for_lightglue(sacre_coeur.sift.features, dst) == 7

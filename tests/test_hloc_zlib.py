@@ -30,8 +30,9 @@ ORDER = textwrap.dedent("""
 def test_zlib_loaded_before_pycolmap(module):
     # -S: no site hooks, which may load zlib at start-up and hide the order
     code = ORDER.format(module=module, path=[str(ROOT)] + [p for p in sys.path if p])
-    out = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True,
-                         timeout=120, check=False)
+    out = subprocess.run(
+        [sys.executable, "-S", "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     order = out.stdout.strip().split(",")
     assert order == ["zlib", "pycolmap"], order
@@ -54,8 +55,13 @@ PLOTS = textwrap.dedent("""
 
 def test_plots_after_pycolmap_do_not_abort(tmp_path):
     pytest.importorskip("matplotlib", reason="plots need matplotlib")
-    out = subprocess.run([sys.executable, "-c", PLOTS.format(out=str(tmp_path))],
-                         capture_output=True, text=True, timeout=300, check=False)
+    out = subprocess.run(
+        [sys.executable, "-c", PLOTS.format(out=str(tmp_path))],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
     from PIL import Image
 

@@ -8,15 +8,28 @@ import cv2
 import numpy as np
 import pytest
 
-from rectified_colmap.io.images import (ImageError, _header_size, decode_image, image_size,
-                                        list_images)
+from rectified_colmap.io.images import (
+    ImageError,
+    _header_size,
+    decode_image,
+    image_size,
+    list_images,
+)
 
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
-@pytest.mark.parametrize("ext,params", [(".jpg", []), (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),
-                                        (".png", []), (".tif", []), (".bmp", []),
-                                        (".webp", [])])
+@pytest.mark.parametrize(
+    "ext,params",
+    [
+        (".jpg", []),
+        (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1]),
+        (".png", []),
+        (".tif", []),
+        (".bmp", []),
+        (".webp", []),
+    ],
+)
 def test_size_from_header_equals_decoded_size(tmp_path, ext, params):
     rng = np.random.default_rng(0)
     for w, h in ((457, 123), (1, 300), (2048, 1536)):

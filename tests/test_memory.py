@@ -6,7 +6,6 @@ bytes per pixel at first_octave = -1). Measured through /proc (Linux only)."""
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from rectified_colmap import features
@@ -106,11 +105,13 @@ def test_retained_memory_is_reused(tmp_path):
         "    detect_sift(img, SiftConf(), 200 + i)\n"
         "    detect_sift(np.ascontiguousarray(img[:150 + 20 * i, :250]), SiftConf(), 300 + i)\n"
         "faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0\n"
-        "print(faults, rss() - before)\n")
+        "print(faults, rss() - before)\n"
+    )
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONPATH": str(root)}
-    out = subprocess.run([sys.executable, str(script)], cwd=root, capture_output=True,
-                         text=True, check=True, env=env).stdout.split()
+    out = subprocess.run(
+        [sys.executable, str(script)], cwd=root, capture_output=True, text=True, check=True, env=env
+    ).stdout.split()
     if out == ["unsupported"]:
         pytest.skip("not glibc")
     faults, grown = int(out[0]), float(out[1])

@@ -118,8 +118,9 @@ def test_closed_form_eigen_matches_eigh():
     rng = np.random.default_rng(2)
     A = rng.normal(size=(500, 3, 3))
     C = A @ A.transpose(0, 2, 1)
-    C[:100] = C[:100] * np.array([1, 1, 1e-6])[None, :, None] * np.array([1, 1, 1e-6])[
-        None, None, :]  # near-degenerate (plane-like) matrices
+    C[:100] = (
+        C[:100] * np.array([1, 1, 1e-6])[None, :, None] * np.array([1, 1, 1e-6])[None, None, :]
+    )  # near-degenerate (plane-like) matrices
     c6 = np.stack([C[:, 0, 0], C[:, 0, 1], C[:, 0, 2], C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]], -1)
     lam, v = smallest_eigenvectors(c6)
     w, V = np.linalg.eigh(C)

@@ -1,6 +1,5 @@
 """Pipeline behaviour on views of a textured plane with known depth and homographies."""
 
-import cv2
 import numpy as np
 import pytest
 
@@ -56,8 +55,11 @@ def test_no_depth_and_no_planes_give_exactly_plain_sift(texture):
     R, t = look_at([1, -4, 3], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
     plain = detect_sift(img)
-    for depth in (None, DepthMap(np.full((30, 40), np.nan)),  # no valid depth
-                  DepthMap(np.random.default_rng(0).uniform(1, 50, (90, 120)))):  # noise
+    for depth in (
+        None,
+        DepthMap(np.full((30, 40), np.nan)),  # no valid depth
+        DepthMap(np.random.default_rng(0).uniform(1, 50, (90, 120))),
+    ):  # noise
         res = extract_image(img, CAMERA, depth)
         assert not res.rectifications
         np.testing.assert_array_equal(res.features.keypoints, plain.keypoints)
@@ -97,8 +99,9 @@ def test_rectified_sift_matches_more_than_plain_at_strong_viewpoint_change(textu
         elev = np.deg2rad(rng.uniform(25, 35))
         views = []
         for az in (az0, az1):
-            eye = 4.5 * np.array([np.cos(az) * np.cos(elev), np.sin(az) * np.cos(elev),
-                                  np.sin(elev)])
+            eye = 4.5 * np.array(
+                [np.cos(az) * np.cos(elev), np.sin(az) * np.cos(elev), np.sin(elev)]
+            )
             R, t = look_at(eye, [0, 0, 0])
             img, z = plane_view(texture, 0.01, K, R, t, SIZE)
             views.append((R, t, img, z))
@@ -138,8 +141,7 @@ def test_patch_evidence_viewing_angle_and_texture():
     n = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])  # faces the camera, 40 deg tilt
     textured = textured_image(SIZE[1], SIZE[0], 3)
     blank = np.full((SIZE[1], SIZE[0]), 128, np.uint8)
-    patches = [Patch(mask, 0, n, mask.mean()), Patch(mask, 1, np.array([0, 0, -1.0]),
-                                                     mask.mean())]
+    patches = [Patch(mask, 0, n, mask.mean()), Patch(mask, 1, np.array([0, 0, -1.0]), mask.mean())]
     angle, tex = patch_evidence(textured, CAMERA, patches)
     # Cells are 5 px (0.7 deg) from the axis: the angles are 40 and ~1 degrees.
     assert abs(angle[0] - 40.0) < 1.0 and angle[1] < 1.5

@@ -4,8 +4,12 @@ import pytest
 from rectified_colmap.camera import grid_rays, make_camera
 from rectified_colmap.config import PlaneConf
 from rectified_colmap.normals import backproject, estimate_normals
-from rectified_colmap.planes import (assign_directions, detect_planes,
-                                     fit_dominant_directions, find_patches)
+from rectified_colmap.planes import (
+    assign_directions,
+    detect_planes,
+    fit_dominant_directions,
+    find_patches,
+)
 
 
 def random_rotation(rng):
@@ -30,8 +34,7 @@ def test_orthogonal_kmeans_recovers_rotation(seed):
     n = np.concatenate([n, rng.normal(size=(3000, 3))])  # 33% uniform outliers
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     n[:50] = np.nan
-    D, support = fit_dominant_directions(n, PlaneConf(num_samples=4000),
-                                         np.random.default_rng(7))
+    D, support = fit_dominant_directions(n, PlaneConf(num_samples=4000), np.random.default_rng(7))
     assert D is not None
     np.testing.assert_allclose(D @ D.T, np.eye(3), atol=1e-9)
     assert np.linalg.det(D) == pytest.approx(1.0)
@@ -56,9 +59,17 @@ def test_too_few_normals():
 def test_assign_directions_signs_and_thresholds():
     D = np.eye(3)
     a = np.deg2rad(10)
-    normals = np.array([[[np.cos(a), np.sin(a), 0], [-np.cos(a), np.sin(a), 0],
-                         [0, 0, -1], [np.nan, np.nan, np.nan],
-                         [np.cos(np.deg2rad(40)), np.sin(np.deg2rad(40)), 0]]])
+    normals = np.array(
+        [
+            [
+                [np.cos(a), np.sin(a), 0],
+                [-np.cos(a), np.sin(a), 0],
+                [0, 0, -1],
+                [np.nan, np.nan, np.nan],
+                [np.cos(np.deg2rad(40)), np.sin(np.deg2rad(40)), 0],
+            ]
+        ]
+    )
     labels = assign_directions(normals, D, PlaneConf(max_angle_deg=20))
     assert labels.dtype == np.int8
     assert labels.tolist() == [[0, 1, 5, -1, -1]]
@@ -69,15 +80,14 @@ def test_assign_directions_signs_and_thresholds():
 def test_find_patches_split_by_sign_and_size():
     D = np.eye(3)
     labels = np.full((60, 90), -1, np.int8)
-    labels[:, :30] = 0   # left wall: +d0
-    labels[:, 60:] = 1   # right wall: -d0 (same direction, facing the other way)
+    labels[:, :30] = 0  # left wall: +d0
+    labels[:, 60:] = 1  # right wall: -d0 (same direction, facing the other way)
     labels[40:, 30:60] = 3  # ground: -d1
     labels[5:7, 40:42] = 4  # tiny blob: dropped
     patches = find_patches(labels, D, PlaneConf(min_area_frac=0.01, opening_radius=1))
     assert len(patches) == 3
     by_label = {(p.axis, tuple(p.normal)): p for p in patches}
-    assert set(by_label) == {(0, (1.0, 0.0, 0.0)), (0, (-1.0, 0.0, 0.0)),
-                             (1, (-0.0, -1.0, -0.0))}
+    assert set(by_label) == {(0, (1.0, 0.0, 0.0)), (0, (-1.0, 0.0, 0.0)), (1, (-0.0, -1.0, -0.0))}
     left = by_label[(0, (1.0, 0.0, 0.0))]
     assert left.mask[:, :30].all() and not left.mask[:, 30:].any()
     assert left.area_frac == pytest.approx(1 / 3)
@@ -117,8 +127,12 @@ def test_detect_planes_street_canyon():
     assert axis_errors_deg(res.directions, world_axes).max() < 0.1
     assert res.support.sum() > 0.8
     normals_found = np.array([p.normal for p in res.patches])
-    expect = {"left": R.T @ [1.0, 0, 0], "right": R.T @ [-1.0, 0, 0],
-              "ground": R.T @ [0, -1.0, 0], "end": R.T @ [0, 0, -1.0]}
+    expect = {
+        "left": R.T @ [1.0, 0, 0],
+        "right": R.T @ [-1.0, 0, 0],
+        "ground": R.T @ [0, -1.0, 0],
+        "end": R.T @ [0, 0, -1.0],
+    }
     for name, e in expect.items():
         assert (normals_found @ e > np.cos(np.deg2rad(0.1))).sum() == 1, name
     # Both walls share an axis but are different patches with opposite normals.

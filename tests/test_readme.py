@@ -12,13 +12,14 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 needs_tools = pytest.mark.skipif(
     shutil.which("colmap") is None or shutil.which("rectified-colmap") is None,
     reason="needs the colmap command line (apt-get install colmap) and the installed "
-           "rectified-colmap console script")
+    "rectified-colmap console script",
+)
 
 
 def readme_commands() -> list[str]:
     """The shell commands of the README's first bash block after "## Use on your images"."""
     text = README.read_text()
-    section = text[text.index("## Use on your images"):]
+    section = text[text.index("## Use on your images") :]
     block = re.search(r"```bash\n(.*?)```", section, re.S).group(1)
     return [ln.strip() for ln in block.splitlines() if ln.strip() and not ln.startswith("#")]
 
@@ -26,8 +27,13 @@ def readme_commands() -> list[str]:
 def test_readme_block_has_the_documented_steps():
     cmds = readme_commands()
     tools = [c.split()[0] + " " + c.split()[1] for c in cmds]
-    assert tools == ["rectified-colmap extract", "colmap exhaustive_matcher", "mkdir -p",
-                     "colmap mapper", "rectified-colmap extract"]
+    assert tools == [
+        "rectified-colmap extract",
+        "colmap exhaustive_matcher",
+        "mkdir -p",
+        "colmap mapper",
+        "rectified-colmap extract",
+    ]
 
 
 @needs_tools
@@ -41,9 +47,14 @@ def test_readme_commands_run_as_written(tmp_path):
     for cmd in readme_commands():
         if cmd.startswith("rectified-colmap") and "--hloc_features" in cmd:
             snapshot = _db_rows(db)  # the second extract must not touch the database
-        out = subprocess.run(cmd + (" --no_progress" if cmd.startswith("rectified") else ""),
-                             shell=True, cwd=tmp_path, capture_output=True, text=True,
-                             timeout=600)
+        out = subprocess.run(
+            cmd + (" --no_progress" if cmd.startswith("rectified") else ""),
+            shell=True,
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert out.returncode == 0, f"{cmd}\n{out.stdout[-2000:]}\n{out.stderr[-2000:]}"
     assert snapshot is not None and _db_rows(db) == snapshot
     assert snapshot["verified"] >= 5
@@ -62,9 +73,12 @@ def test_readme_commands_run_as_written(tmp_path):
 def _db_rows(db: Path) -> dict:
     con = sqlite3.connect(db)
     try:
-        return {"keypoints": con.execute("SELECT image_id, data FROM keypoints").fetchall(),
-                "matches": con.execute("SELECT pair_id, data FROM matches").fetchall(),
-                "verified": con.execute("SELECT COUNT(*) FROM two_view_geometries WHERE "
-                                        "config >= 2").fetchone()[0]}
+        return {
+            "keypoints": con.execute("SELECT image_id, data FROM keypoints").fetchall(),
+            "matches": con.execute("SELECT pair_id, data FROM matches").fetchall(),
+            "verified": con.execute(
+                "SELECT COUNT(*) FROM two_view_geometries WHERE config >= 2"
+            ).fetchone()[0],
+        }
     finally:
         con.close()

@@ -6,9 +6,14 @@ from rectified_colmap import camera as cam_utils
 from rectified_colmap.camera import make_camera, rays_to_image
 from rectified_colmap.config import RectifyConf
 from rectified_colmap.planes import Patch
-from rectified_colmap.rectify import (Rectification, image_to_rectified_homography,
-                                      plan_rectification, rectified_to_image,
-                                      rectifying_rotation, warp_to_rectified)
+from rectified_colmap.rectify import (
+    Rectification,
+    image_to_rectified_homography,
+    plan_rectification,
+    rectified_to_image,
+    rectifying_rotation,
+    warp_to_rectified,
+)
 
 W, H = 240, 160
 GW, GH = 120, 80  # work grid
@@ -119,8 +124,9 @@ def test_jacobian_matches_central_differences(name):
     for j in range(2):
         d = np.zeros(2)
         d[j] = eps
-        Jn[:, :, j] = (rectified_to_image(cam, rect, q + d)[0]
-                       - rectified_to_image(cam, rect, q - d)[0]) / (2 * eps)
+        Jn[:, :, j] = (
+            rectified_to_image(cam, rect, q + d)[0] - rectified_to_image(cam, rect, q - d)[0]
+        ) / (2 * eps)
     rel = np.abs(Jn - J).max((1, 2)) / np.abs(J).max((1, 2))
     assert rel.max() < 1e-5
 
@@ -145,8 +151,9 @@ def test_plan_nothing_shrinks_and_caps():
     # Every patch cell is inside the rectified image, with the border margin.
     assert q.min() >= 4 - 1e-6 and (q.max(0) <= np.array(rect.size) - 4 + 1e-6).all()
     # Side cap and area cap.
-    capped = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_side=100,
-                                                                   max_patch_area_factor=100))
+    capped = plan_rectification(
+        cam, full_patch(n), 0, RectifyConf(max_patch_side=100, max_patch_area_factor=100)
+    )
     assert max(capped.size) <= 100 and capped.K[0, 0] < rect.K[0, 0]
     area = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_area_factor=0.5))
     assert area.mask.sum() <= 0.5 * W * H * 1.05
@@ -155,8 +162,7 @@ def test_plan_nothing_shrinks_and_caps():
 def test_mask_excludes_grazing_rays_and_none_when_nothing_left():
     cam = camera("PINHOLE")
     n = unit([0.0, -1.0, -0.15])  # ground seen at grazing angles
-    conf = RectifyConf(max_viewing_angle_deg=60, max_patch_area_factor=100,
-                       max_patch_side=4000)
+    conf = RectifyConf(max_viewing_angle_deg=60, max_patch_area_factor=100, max_patch_side=4000)
     rect = plan_rectification(cam, full_patch(n), 0, conf)
     q = np.stack(np.nonzero(rect.mask)[::-1], 1) + 0.5
     xy, _ = rectified_to_image(cam, rect, q)
@@ -165,7 +171,9 @@ def test_mask_excludes_grazing_rays_and_none_when_nothing_left():
     assert cosv.min() >= np.cos(np.deg2rad(60)) - 1e-9
     # ...while the image has plenty of pixels beyond 60 degrees.
     all_rays = cam_utils.grid_rays(cam, GW, GH).reshape(-1, 3)
-    assert (-(all_rays @ n) / np.linalg.norm(all_rays, axis=1) < np.cos(np.deg2rad(60))).mean() > 0.2
+    assert (
+        -(all_rays @ n) / np.linalg.norm(all_rays, axis=1) < np.cos(np.deg2rad(60))
+    ).mean() > 0.2
     # Everything beyond the limit: nothing usable.
     assert plan_rectification(cam, full_patch(n), 0, RectifyConf(max_viewing_angle_deg=20)) is None
 
@@ -178,6 +186,7 @@ def test_warp_masks_rays_behind_camera():
     K = np.array([[f, 0, 300.0], [0, f, 150.0], [0, 0, 1]])
     rect = Rectification(R, K, (600, 300), np.ones((300, 600), bool), n, 0)
     from rectified_colmap.rectify import _rectified_mask, _rectified_pixel_rays
+
     X = _rectified_pixel_rays(rect)
     behind = X[..., 2] <= 0
     assert behind.mean() > 0.1
@@ -186,6 +195,7 @@ def test_warp_masks_rays_behind_camera():
     img = np.full((H, W), 200, np.uint8)
     # Plain warpPerspective mirrors content into the rays behind the camera...
     from rectified_colmap.conventions import to_opencv_homography
+
     Hcv = to_opencv_homography(image_to_rectified_homography(cam, rect))
     raw = cv2.warpPerspective(img, Hcv, rect.size)
     assert (raw[behind] > 0).any()

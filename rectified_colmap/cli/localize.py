@@ -16,31 +16,59 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     c = LocalizeConf()  # the defaults the help texts show
     p = sub.add_parser(
-        "localize", help="triangulate a reference from known poses and localize queries",
+        "localize",
+        help="triangulate a reference from known poses and localize queries",
         description="Database images of a posed COLMAP model are triangulated with each "
-                    "method's features (ratio test, matches verified against the known "
-                    "poses); queries are localized by 2D-3D matches and absolute-pose "
-                    "RANSAC. With ground truth (held-out model images) the fraction within "
-                    "(0.25 m, 2 deg), (0.5 m, 5 deg), (5 m, 10 deg) is reported; poses are "
-                    "always written as 'name qw qx qy qz tx ty tz'.")
-    p.add_argument("--reference_model", type=Path, required=True,
-                   help="COLMAP model (text or binary) with cameras and poses")
-    p.add_argument("--features", nargs="+", required=True, metavar="METHOD=H5",
-                   help="hloc feature files, one per method (database and query images)")
-    p.add_argument("--queries", type=Path,
-                   help="query list 'name MODEL W H params...'; default: hold out model "
-                        "images (--holdout_every) with their poses as ground truth")
-    p.add_argument("--holdout_every", type=int, default=3,
-                   help="every N-th model image (sorted by name, from the 2nd) is a query "
-                        "(%(default)s)")
-    p.add_argument("--name_prefix", default="",
-                   help="prefix turning model image names into feature names, e.g. images/")
+        "method's features (ratio test, matches verified against the known "
+        "poses); queries are localized by 2D-3D matches and absolute-pose "
+        "RANSAC. With ground truth (held-out model images) the fraction within "
+        "(0.25 m, 2 deg), (0.5 m, 5 deg), (5 m, 10 deg) is reported; poses are "
+        "always written as 'name qw qx qy qz tx ty tz'.",
+    )
+    p.add_argument(
+        "--reference_model",
+        type=Path,
+        required=True,
+        help="COLMAP model (text or binary) with cameras and poses",
+    )
+    p.add_argument(
+        "--features",
+        nargs="+",
+        required=True,
+        metavar="METHOD=H5",
+        help="hloc feature files, one per method (database and query images)",
+    )
+    p.add_argument(
+        "--queries",
+        type=Path,
+        help="query list 'name MODEL W H params...'; default: hold out model "
+        "images (--holdout_every) with their poses as ground truth",
+    )
+    p.add_argument(
+        "--holdout_every",
+        type=int,
+        default=3,
+        help="every N-th model image (sorted by name, from the 2nd) is a query (%(default)s)",
+    )
+    p.add_argument(
+        "--name_prefix",
+        default="",
+        help="prefix turning model image names into feature names, e.g. images/",
+    )
     p.add_argument("--output_dir", type=Path, required=True)
     p.add_argument("--ratio", type=float, default=None, help=f"ratio test ({c.ratio})")
-    p.add_argument("--ransac_max_error", type=float, default=None,
-                   help=f"absolute-pose RANSAC threshold in pixels ({c.ransac_max_error:g})")
-    p.add_argument("--num_retrieved", type=int, default=None,
-                   help=f"database images matched per query, 0 = all ({c.num_retrieved})")
+    p.add_argument(
+        "--ransac_max_error",
+        type=float,
+        default=None,
+        help=f"absolute-pose RANSAC threshold in pixels ({c.ransac_max_error:g})",
+    )
+    p.add_argument(
+        "--num_retrieved",
+        type=int,
+        default=None,
+        help=f"database images matched per query, 0 = all ({c.num_retrieved})",
+    )
     p.add_argument("--no_progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -61,8 +89,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         model = pycolmap.Reconstruction(str(args.reference_model))
     except Exception as e:
-        raise SystemExit(f"--reference_model {args.reference_model}: cannot read a COLMAP "
-                         f"model ({e})") from None
+        raise SystemExit(
+            f"--reference_model {args.reference_model}: cannot read a COLMAP model ({e})"
+        ) from None
     queries = read_query_list(args.queries) if args.queries else None
     methods = methods_arg(args.features)
     out = args.output_dir
@@ -71,13 +100,25 @@ def run(args: argparse.Namespace) -> int:
     for method, h5 in methods.items():
         try:
             results, acc = localize_with_model(
-                model, h5, out / f"work_{method}", queries, args.holdout_every,
-                args.name_prefix, conf, progress=not args.no_progress)
+                model,
+                h5,
+                out / f"work_{method}",
+                queries,
+                args.holdout_every,
+                args.name_prefix,
+                conf,
+                progress=not args.no_progress,
+            )
         except (ValueError, KeyError, FileNotFoundError) as e:
             raise SystemExit(f"{method}: {e}") from None
         n = write_poses(out / f"poses_{method}.txt", results)
-        logger.info("%s: %d/%d queries localized -> %s", method, n, len(results),
-                    out / f"poses_{method}.txt")
+        logger.info(
+            "%s: %d/%d queries localized -> %s",
+            method,
+            n,
+            len(results),
+            out / f"poses_{method}.txt",
+        )
         if acc is not None:
             rows[method], counts[method] = acc, len(results)
     if rows:

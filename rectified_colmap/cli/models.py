@@ -11,9 +11,12 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("models", help="list, download and inspect depth models",
-                       description="Depth networks: the embedded default and public ONNX "
-                                   "models (downloaded on demand into the cache).")
+    p = sub.add_parser(
+        "models",
+        help="list, download and inspect depth models",
+        description="Depth networks: the embedded default and public ONNX "
+        "models (downloaded on demand into the cache).",
+    )
     msub = p.add_subparsers(dest="models_command", required=True)
     msub.add_parser("list", help="registered models, licences and cache state")
     d = msub.add_parser("download", help="fetch a registered model into the cache")
@@ -51,8 +54,10 @@ def _info(name_or_path: str) -> int:
     if sidecar:
         print(f"sidecar: {sidecar}")
     if entry is not None:
-        print(f"registry: {entry.name}, licence {entry.licence}, sha256 "
-              f"{registry.expected_sha256(entry) or 'not pinned'}")
+        print(
+            f"registry: {entry.name}, licence {entry.licence}, sha256 "
+            f"{registry.expected_sha256(entry) or 'not pinned'}"
+        )
     print(json.dumps({k: v for k, v in vars(spec).items()}, indent=2))
     return 0
 
@@ -64,8 +69,7 @@ def run(args: argparse.Namespace) -> int:
         if args.models_command == "list":
             return _list()
         if args.models_command == "download":
-            path = registry.download(args.name, force=args.force,
-                                     progress=not args.no_progress)
+            path = registry.download(args.name, force=args.force, progress=not args.no_progress)
             print(path)
             return 0
         return _info(args.name_or_path)

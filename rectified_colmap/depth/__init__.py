@@ -61,8 +61,9 @@ class DepthMap:
             return None
         valid = float((finite & (v > 0)).mean())
         if valid < MIN_VALID_FRACTION:
-            return (f"{valid:.1%} of the values are positive depths: the rest are zero, "
-                    "negative or NaN")
+            return (
+                f"{valid:.1%} of the values are positive depths: the rest are zero, negative or NaN"
+            )
         return None
 
     def to_depth(self, shift: float = 0.0) -> np.ndarray:
@@ -75,8 +76,9 @@ class DepthMap:
 
 
 class DepthSource(Protocol):
-    def __call__(self, image: np.ndarray, camera: pycolmap.Camera, name: str
-                 ) -> DepthMap | None: ...
+    def __call__(
+        self, image: np.ndarray, camera: pycolmap.Camera, name: str
+    ) -> DepthMap | None: ...
 
 
 def resample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -94,5 +96,4 @@ def resample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
             out = s / c
         out[c < 0.999] = np.nan  # any invalid pixel under the cell: unreliable
         return out.astype(np.float32)
-    return cv2.resize(depth.astype(np.float32), (width, height),
-                      interpolation=cv2.INTER_NEAREST)
+    return cv2.resize(depth.astype(np.float32), (width, height), interpolation=cv2.INTER_NEAREST)

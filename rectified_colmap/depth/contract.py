@@ -48,9 +48,11 @@ CONTRACT_VERSION = "1"
 LAYOUTS = ("NCHW", "NHWC")
 COLORS = ("RGB", "BGR")
 OUTPUTS = ("metric", "depth", "disparity", "metric_canonical")
-RESIZE_MODES = {"fixed": ("width", "height"),
-                "keep_aspect": ("max_side", "multiple_of"),
-                "letterbox": ("width", "height", "multiple_of")}
+RESIZE_MODES = {
+    "fixed": ("width", "height"),
+    "keep_aspect": ("max_side", "multiple_of"),
+    "letterbox": ("width", "height", "multiple_of"),
+}
 IMAGENET_MEAN = [0.485, 0.456, 0.406]
 IMAGENET_STD = [0.229, 0.224, 0.225]
 
@@ -69,7 +71,8 @@ class ModelSpec:
     mean: list[float] = field(default_factory=lambda: list(IMAGENET_MEAN))
     std: list[float] = field(default_factory=lambda: list(IMAGENET_STD))
     resize: dict[str, Any] = field(
-        default_factory=lambda: {"mode": "keep_aspect", "max_side": 512, "multiple_of": 32})
+        default_factory=lambda: {"mode": "keep_aspect", "max_side": 512, "multiple_of": 32}
+    )
     output: str = "depth"
     canonical_focal: float | None = None
     name: str = ""
@@ -80,12 +83,15 @@ class ModelSpec:
     # -- validation ---------------------------------------------------------------------
     def validate(self, origin: str = "model spec") -> "ModelSpec":
         """Raise ValueError (naming ``origin``) on any inconsistent field; returns self."""
+
         def bad(msg):
             raise ValueError(f"{origin}: {msg}")
 
         if str(self.contract_version) != CONTRACT_VERSION:
-            bad(f"contract_version {self.contract_version!r} is not supported "
-                f"(this version reads {CONTRACT_VERSION!r})")
+            bad(
+                f"contract_version {self.contract_version!r} is not supported "
+                f"(this version reads {CONTRACT_VERSION!r})"
+            )
         if self.layout not in LAYOUTS:
             bad(f"layout {self.layout!r} not in {LAYOUTS}")
         if self.color not in COLORS:
@@ -125,15 +131,16 @@ class ModelSpec:
         return out
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any], base: "ModelSpec | None" = None,
-                  origin: str = "model spec") -> "ModelSpec":
+    def from_dict(
+        cls, values: dict[str, Any], base: "ModelSpec | None" = None, origin: str = "model spec"
+    ) -> "ModelSpec":
         """``base`` (default: defaults) updated by ``values``: keys with or without the
         prefix, values as strings (metadata) or native JSON types (sidecar). Unknown keys
         under the prefix raise; other keys are ignored."""
         spec = dataclasses.replace(base) if base is not None else cls()
         names = {f.name for f in dataclasses.fields(cls)}
         for key, value in values.items():
-            k = key[len(PREFIX):] if key.startswith(PREFIX) else key
+            k = key[len(PREFIX) :] if key.startswith(PREFIX) else key
             if k not in names:
                 if key.startswith(PREFIX):
                     raise ValueError(f"{origin}: unknown contract key {key!r}")
@@ -145,8 +152,12 @@ class ModelSpec:
         return spec
 
     @classmethod
-    def from_onnx(cls, path: str | Path, fallback: "ModelSpec | None" = None,
-                  metadata: dict[str, str] | None = None) -> "ModelSpec":
+    def from_onnx(
+        cls,
+        path: str | Path,
+        fallback: "ModelSpec | None" = None,
+        metadata: dict[str, str] | None = None,
+    ) -> "ModelSpec":
         """Spec of an ONNX file: its metadata (read with onnxruntime unless ``metadata`` is
         given), else ``fallback``, then the sidecar JSON; validated."""
         path = Path(path)
@@ -158,8 +169,13 @@ class ModelSpec:
         else:
             spec = dataclasses.replace(fallback) if fallback is not None else cls()
             if fallback is None:
-                logger.warning("%s carries no %s* metadata and has no registry entry: "
-                               "using the default contract %s", path, PREFIX, spec)
+                logger.warning(
+                    "%s carries no %s* metadata and has no registry entry: "
+                    "using the default contract %s",
+                    path,
+                    PREFIX,
+                    spec,
+                )
         sidecar = find_sidecar(path)
         if sidecar is not None:
             try:

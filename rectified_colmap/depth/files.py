@@ -47,21 +47,24 @@ def read_colmap_array(path: Path) -> np.ndarray:
     while len(fields) < 3:
         end = raw.find(b"&", pos, pos + 32)
         if end < 0:
-            raise ValueError(f"{path}: not a COLMAP dense array (bad header "
-                             f"{raw[:40]!r}, expected 'width&height&channels&')")
+            raise ValueError(
+                f"{path}: not a COLMAP dense array (bad header "
+                f"{raw[:40]!r}, expected 'width&height&channels&')"
+            )
         fields.append(raw[pos:end])
         pos = end + 1
     try:
         width, height, channels = (int(f.decode("ascii")) for f in fields)
     except (UnicodeDecodeError, ValueError):
-        raise ValueError(f"{path}: not a COLMAP dense array (bad header {raw[:pos]!r})"
-                         ) from None
+        raise ValueError(f"{path}: not a COLMAP dense array (bad header {raw[:pos]!r})") from None
     if width <= 0 or height <= 0 or channels <= 0:
         raise ValueError(f"{path}: bad COLMAP array size {width}x{height}x{channels}")
     n = width * height * channels
     if len(raw) - pos != 4 * n:
-        raise ValueError(f"{path}: COLMAP array {width}x{height}x{channels} needs {4 * n} "
-                         f"bytes of data, file has {len(raw) - pos} (truncated or corrupt)")
+        raise ValueError(
+            f"{path}: COLMAP array {width}x{height}x{channels} needs {4 * n} "
+            f"bytes of data, file has {len(raw) - pos} (truncated or corrupt)"
+        )
     data = np.frombuffer(raw, dtype="<f4", count=n, offset=pos)
     arr = data.reshape((width, height, channels), order="F").transpose(1, 0, 2)
     return np.ascontiguousarray(arr.squeeze(axis=2) if channels == 1 else arr, np.float32)
@@ -104,8 +107,9 @@ def _read_npz(path: Path) -> tuple[np.ndarray, str | None]:
             return z["depth"], kind
         if len(keys) == 1:
             return z[keys[0]], kind
-    raise ValueError(f"{path}: .npz needs an array named 'depth' or exactly one array, "
-                     f"found {keys}")
+    raise ValueError(
+        f"{path}: .npz needs an array named 'depth' or exactly one array, found {keys}"
+    )
 
 
 def _read_png(path: Path, png_scale: float) -> np.ndarray:
@@ -115,13 +119,16 @@ def _read_png(path: Path, png_scale: float) -> np.ndarray:
     if img.ndim != 2:
         raise ValueError(f"{path}: depth PNG must have one channel, got shape {img.shape}")
     if img.dtype != np.uint16:
-        raise ValueError(f"{path}: depth PNG must be 16-bit (depth = value x scale), got "
-                         f"{img.dtype} (an 8-bit PNG is a visualisation, not depth)")
+        raise ValueError(
+            f"{path}: depth PNG must be 16-bit (depth = value x scale), got "
+            f"{img.dtype} (an 8-bit PNG is a visualisation, not depth)"
+        )
     return img.astype(np.float32) * np.float32(png_scale)
 
 
-def read_depth_file(path: str | Path, kind: str | None = None,
-                    png_scale: float = DEFAULT_PNG_SCALE) -> DepthMap:
+def read_depth_file(
+    path: str | Path, kind: str | None = None, png_scale: float = DEFAULT_PNG_SCALE
+) -> DepthMap:
     """Read one depth file (see module docstring) -> DepthMap.
 
     ``kind``: what the values are (default: the .npz's ``kind`` entry, else "depth").
@@ -129,8 +136,7 @@ def read_depth_file(path: str | Path, kind: str | None = None,
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
-        raise ValueError(f"{path}: unknown depth file type {suffix!r}, expected one of "
-                         f"{SUFFIXES}")
+        raise ValueError(f"{path}: unknown depth file type {suffix!r}, expected one of {SUFFIXES}")
     if not path.is_file():
         raise ValueError(f"{path}: depth file does not exist")
     file_kind = None
@@ -157,8 +163,9 @@ def read_depth_file(path: str | Path, kind: str | None = None,
     return DepthMap(_as_2d(arr, path), kind)
 
 
-def write_depth_file(path: str | Path, depth: np.ndarray,
-                     png_scale: float = DEFAULT_PNG_SCALE) -> Path:
+def write_depth_file(
+    path: str | Path, depth: np.ndarray, png_scale: float = DEFAULT_PNG_SCALE
+) -> Path:
     """Write a (H, W) depth map in the format given by the suffix (for tests and tools).
     PNG: round(depth / png_scale) as uint16, invalid -> 0."""
     path = Path(path)
@@ -172,8 +179,10 @@ def write_depth_file(path: str | Path, depth: np.ndarray,
     elif suffix == ".png":
         v = np.where(np.isfinite(depth) & (depth > 0), np.round(depth / png_scale), 0)
         if v.max(initial=0) > 65535:
-            raise ValueError(f"{path}: depth {depth[np.isfinite(depth)].max()} overflows "
-                             f"16 bits at scale {png_scale}")
+            raise ValueError(
+                f"{path}: depth {depth[np.isfinite(depth)].max()} overflows "
+                f"16 bits at scale {png_scale}"
+            )
         if not cv2.imwrite(str(path), v.astype(np.uint16)):
             raise ValueError(f"{path}: cannot write PNG")
     elif suffix == ".bin":
@@ -221,8 +230,10 @@ def check_aspect(depth: DepthMap, width: int, height: int, origin: str) -> None:
     h, w = depth.values.shape
     a, b = w / h, width / height
     if abs(a / b - 1) > MAX_ASPECT_MISMATCH:
-        raise ValueError(f"{origin}: depth map {w}x{h} does not match the aspect ratio of "
-                         f"its image {width}x{height} (transposed or cropped?)")
+        raise ValueError(
+            f"{origin}: depth map {w}x{h} does not match the aspect ratio of "
+            f"its image {width}x{height} (transposed or cropped?)"
+        )
 
 
 # ---------------------------------------------------------------------------------------
@@ -239,8 +250,9 @@ class ArrayDepthSource:
         self.depths = dict(depths)
         self.kind = kind
 
-    def __call__(self, image: np.ndarray | None, camera: pycolmap.Camera | None,
-                 name: str) -> DepthMap | None:
+    def __call__(
+        self, image: np.ndarray | None, camera: pycolmap.Camera | None, name: str
+    ) -> DepthMap | None:
         d = self.depths.get(name)
         if d is None:
             return None
@@ -253,8 +265,9 @@ class FileDepthSource:
     Returns None (no error) when an image has no file; raises ValueError naming the file
     when it exists but is unreadable, corrupt, or of the wrong aspect ratio."""
 
-    def __init__(self, depth_root: str | Path, kind: str = "depth",
-                 png_scale: float = DEFAULT_PNG_SCALE):
+    def __init__(
+        self, depth_root: str | Path, kind: str = "depth", png_scale: float = DEFAULT_PNG_SCALE
+    ):
         self.root = Path(depth_root)
         if not self.root.is_dir():
             raise ValueError(f"{self.root}: depth folder does not exist")
@@ -268,8 +281,9 @@ class FileDepthSource:
     def find(self, name: str) -> Path | None:
         return find_depth_file(self.root, name)
 
-    def __call__(self, image: np.ndarray | None, camera: pycolmap.Camera | None,
-                 name: str) -> DepthMap | None:
+    def __call__(
+        self, image: np.ndarray | None, camera: pycolmap.Camera | None, name: str
+    ) -> DepthMap | None:
         path = self.find(name)
         if path is None:
             logger.debug("no depth file for %s under %s", name, self.root)

@@ -82,8 +82,11 @@ def preprocess(image: np.ndarray, spec: ModelSpec) -> tuple[np.ndarray, InputGeo
     g = input_geometry(spec, width, height)
     if (g.content_width, g.content_height) != (width, height):
         down = g.content_width * g.content_height < width * height
-        img = cv2.resize(image, (g.content_width, g.content_height),
-                         interpolation=cv2.INTER_AREA if down else cv2.INTER_LINEAR)
+        img = cv2.resize(
+            image,
+            (g.content_width, g.content_height),
+            interpolation=cv2.INTER_AREA if down else cv2.INTER_LINEAR,
+        )
     else:
         img = image
     if spec.color == "BGR":
@@ -92,7 +95,7 @@ def preprocess(image: np.ndarray, spec: ModelSpec) -> tuple[np.ndarray, InputGeo
     x = (x - np.asarray(spec.mean, np.float32)) / np.asarray(spec.std, np.float32)
     if (g.content_width, g.content_height) != (g.width, g.height):
         canvas = np.zeros((g.height, g.width, 3), np.float32)
-        canvas[g.y0:g.y0 + g.content_height, g.x0:g.x0 + g.content_width] = x
+        canvas[g.y0 : g.y0 + g.content_height, g.x0 : g.x0 + g.content_width] = x
         x = canvas
     x = x[None] if spec.layout == "NHWC" else x.transpose(2, 0, 1)[None]
     return np.ascontiguousarray(x, np.float32), g
@@ -108,8 +111,10 @@ def _squeeze_output(out: np.ndarray, batch: int, origin: str) -> np.ndarray:
     elif out.ndim == 4 and out.shape[3] == 1:
         out = out[..., 0]
     if out.ndim != 3 or out.shape[0] != batch:
-        raise ValueError(f"{origin}: unexpected depth output shape {out.shape} for a batch "
-                         f"of {batch} (expected (B,1,h,w), (B,h,w) or (B,h,w,1))")
+        raise ValueError(
+            f"{origin}: unexpected depth output shape {out.shape} for a batch "
+            f"of {batch} (expected (B,1,h,w), (B,h,w) or (B,h,w,1))"
+        )
     return out.astype(np.float32)
 
 
@@ -154,9 +159,15 @@ class OnnxDepthSource:
     threads (None: onnxruntime's default). ``shift``: None (return disparity as is),
     'zero' or 'orthogonal' (convert disparity to depth here)."""
 
-    def __init__(self, model_path: str | Path, providers: list[str] | None = None,
-                 num_threads: int | None = None, shift: str | None = None,
-                 spec: ModelSpec | None = None, max_batch: int = 8):
+    def __init__(
+        self,
+        model_path: str | Path,
+        providers: list[str] | None = None,
+        num_threads: int | None = None,
+        shift: str | None = None,
+        spec: ModelSpec | None = None,
+        max_batch: int = 8,
+    ):
         import onnxruntime as ort
 
         self.path = Path(model_path)
@@ -172,8 +183,9 @@ class OnnxDepthSource:
             opts.inter_op_num_threads = 1
         self.providers = providers or default_providers()
         try:
-            self.session = ort.InferenceSession(str(self.path), sess_options=opts,
-                                                providers=self.providers)
+            self.session = ort.InferenceSession(
+                str(self.path), sess_options=opts, providers=self.providers
+            )
         except Exception as e:
             raise ValueError(f"{self.path}: onnxruntime cannot load the model ({e})") from None
         meta = dict(self.session.get_modelmeta().custom_metadata_map)
@@ -182,23 +194,32 @@ class OnnxDepthSource:
         outputs = [o.name for o in self.session.get_outputs()]
         if self.spec.input_name is None:
             if len(inputs) != 1:
-                raise ValueError(f"{self.path}: model has inputs {list(inputs)}; name one "
-                                 f"with input_name in the metadata or sidecar")
+                raise ValueError(
+                    f"{self.path}: model has inputs {list(inputs)}; name one "
+                    f"with input_name in the metadata or sidecar"
+                )
             self.spec.input_name = next(iter(inputs))
         if self.spec.input_name not in inputs:
-            raise ValueError(f"{self.path}: no input {self.spec.input_name!r}, the model "
-                             f"has {list(inputs)}")
+            raise ValueError(
+                f"{self.path}: no input {self.spec.input_name!r}, the model has {list(inputs)}"
+            )
         if self.spec.output_name is None:
             self.spec.output_name = outputs[0]
         if self.spec.output_name not in outputs:
-            raise ValueError(f"{self.path}: no output {self.spec.output_name!r}, the model "
-                             f"has {outputs}")
+            raise ValueError(
+                f"{self.path}: no output {self.spec.output_name!r}, the model has {outputs}"
+            )
         shape = list(inputs[self.spec.input_name].shape)
         self._static = [d if isinstance(d, int) else None for d in shape]
         self._adapt_to_static_size()
-        logger.info("depth model %s (%s, output %s, resize %s) on %s", self.path.name,
-                    self.spec.name or "unnamed", self.spec.output, self.spec.resize,
-                    self.session.get_providers()[0])
+        logger.info(
+            "depth model %s (%s, output %s, resize %s) on %s",
+            self.path.name,
+            self.spec.name or "unnamed",
+            self.spec.output,
+            self.spec.resize,
+            self.session.get_providers()[0],
+        )
 
     def _adapt_to_static_size(self) -> None:
         """A model with a fixed input size runs at that size: keep_aspect (or a letterbox
@@ -210,11 +231,13 @@ class OnnxDepthSource:
             return
         H, W = hw
         r = self.spec.resize
-        if r["mode"] == "fixed" or (r["mode"] == "letterbox" and
-                                    (r["width"], r["height"]) == (W, H)):
+        if r["mode"] == "fixed" or (
+            r["mode"] == "letterbox" and (r["width"], r["height"]) == (W, H)
+        ):
             return
-        logger.info("%s has a fixed input size %dx%d: resize %s -> letterbox", self.path.name,
-                    W, H, r)
+        logger.info(
+            "%s has a fixed input size %dx%d: resize %s -> letterbox", self.path.name, W, H, r
+        )
         self.spec.resize = {"mode": "letterbox", "width": W, "height": H, "multiple_of": 1}
 
     @property
@@ -227,7 +250,8 @@ class OnnxDepthSource:
                 raise ValueError(
                     f"{self.path}: the model takes a fixed input shape {self._static}, the "
                     f"contract's resize {self.spec.resize} gives {list(x.shape)}; set resize "
-                    f"to {{'mode': 'fixed', ...}} in the metadata or a sidecar JSON")
+                    f"to {{'mode': 'fixed', ...}} in the metadata or a sidecar JSON"
+                )
 
     def run(self, x: np.ndarray) -> np.ndarray:
         """Raw network call: input batch -> (B, h', w') float32."""
@@ -236,13 +260,13 @@ class OnnxDepthSource:
         try:
             (out,) = self.session.run([self.spec.output_name], {self.spec.input_name: x})
         except Exception as e:
-            raise RuntimeError(f"{self.path}: inference failed on input {x.shape} ({e})"
-                               ) from None
+            raise RuntimeError(f"{self.path}: inference failed on input {x.shape} ({e})") from None
         logger.debug("depth network %s: %.3f s", x.shape, time.perf_counter() - t)
         return _squeeze_output(out, len(x), str(self.path))
 
-    def _to_depthmap(self, out: np.ndarray, g: InputGeometry,
-                     camera: pycolmap.Camera | None) -> DepthMap:
+    def _to_depthmap(
+        self, out: np.ndarray, g: InputGeometry, camera: pycolmap.Camera | None
+    ) -> DepthMap:
         v = postprocess(out, g)
         kind = self.spec.output
         if kind == "metric_canonical":
@@ -262,14 +286,15 @@ class OnnxDepthSource:
             depth = DepthMap(depth.to_depth(shift), "depth")
         return depth
 
-    def __call__(self, image: np.ndarray, camera: pycolmap.Camera | None = None,
-                 name: str | None = None) -> DepthMap:
+    def __call__(
+        self, image: np.ndarray, camera: pycolmap.Camera | None = None, name: str | None = None
+    ) -> DepthMap:
         x, g = preprocess(image, self.spec)
         return self._to_depthmap(self.run(x)[0], g, camera)
 
-    def predict_batch(self, images: list[np.ndarray],
-                      cameras: list[pycolmap.Camera | None] | None = None
-                      ) -> list[DepthMap]:
+    def predict_batch(
+        self, images: list[np.ndarray], cameras: list[pycolmap.Camera | None] | None = None
+    ) -> list[DepthMap]:
         """Depth of several images; images with the same network input size run as one
         batch (up to ``max_batch``) when the model's batch dimension is dynamic."""
         cameras = cameras if cameras is not None else [None] * len(images)
@@ -283,7 +308,7 @@ class OnnxDepthSource:
         out: list[DepthMap | None] = [None] * len(images)
         for idx in groups.values():
             for k in range(0, len(idx), step):
-                chunk = idx[k:k + step]
+                chunk = idx[k : k + step]
                 y = self.run(np.concatenate([prepared[i][0] for i in chunk]))
                 for j, i in enumerate(chunk):
                     out[i] = self._to_depthmap(y[j], prepared[i][1], cameras[i])

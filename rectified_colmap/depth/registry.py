@@ -70,36 +70,65 @@ def register_model(entry: ModelEntry, overwrite: bool = False) -> ModelEntry:
     return entry
 
 
-register_model(ModelEntry(
-    name="rectsift-lite0", filename="rectsift-depth-lite0.onnx", licence="Apache-2.0",
-    description="embedded default: EfficientNet-Lite0 U-Net trained by this project on "
-                "rendered street scenes (z-depth up to scale)",
-    approx_mb=None))
-register_model(ModelEntry(
-    name="depth-anything-v2-small", filename="depth_anything_v2_vits.onnx",
-    licence="Apache-2.0",
-    description="Depth Anything V2 Small (ViT-S), affine-invariant disparity; "
-                "fabio-sim/Depth-Anything-ONNX release v2.0.0",
-    url="https://github.com/fabio-sim/Depth-Anything-ONNX/releases/download/v2.0.0/"
+register_model(
+    ModelEntry(
+        name="rectsift-lite0",
+        filename="rectsift-depth-lite0.onnx",
+        licence="Apache-2.0",
+        description="embedded default: EfficientNet-Lite0 U-Net trained by this project on "
+        "rendered street scenes (z-depth up to scale)",
+        approx_mb=None,
+    )
+)
+register_model(
+    ModelEntry(
+        name="depth-anything-v2-small",
+        filename="depth_anything_v2_vits.onnx",
+        licence="Apache-2.0",
+        description="Depth Anything V2 Small (ViT-S), affine-invariant disparity; "
+        "fabio-sim/Depth-Anything-ONNX release v2.0.0",
+        url="https://github.com/fabio-sim/Depth-Anything-ONNX/releases/download/v2.0.0/"
         "depth_anything_v2_vits.onnx",
-    approx_mb=99,
-    spec=ModelSpec(input_name="image", output_name="depth", layout="NCHW", color="RGB",
-                   scale=1 / 255, mean=list(IMAGENET_MEAN), std=list(IMAGENET_STD),
-                   resize={"mode": "keep_aspect", "max_side": 518, "multiple_of": 14},
-                   output="disparity", name="depth-anything-v2-small",
-                   licence="Apache-2.0",
-                   description="Depth Anything V2 Small, relative disparity")))
-register_model(ModelEntry(
-    name="midas-v2.1-small", filename="midas_v21_small_model-small.onnx", licence="MIT",
-    description="MiDaS v2.1 small (EfficientNet-Lite3 encoder), relative disparity; "
-                "isl-org/MiDaS release v2_1",
-    url="https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx",
-    approx_mb=66,
-    spec=ModelSpec(layout="NCHW", color="RGB", scale=1 / 255, mean=list(IMAGENET_MEAN),
-                   std=list(IMAGENET_STD),
-                   resize={"mode": "fixed", "width": 256, "height": 256},
-                   output="disparity", name="midas-v2.1-small", licence="MIT",
-                   description="MiDaS v2.1 small, relative disparity")))
+        approx_mb=99,
+        spec=ModelSpec(
+            input_name="image",
+            output_name="depth",
+            layout="NCHW",
+            color="RGB",
+            scale=1 / 255,
+            mean=list(IMAGENET_MEAN),
+            std=list(IMAGENET_STD),
+            resize={"mode": "keep_aspect", "max_side": 518, "multiple_of": 14},
+            output="disparity",
+            name="depth-anything-v2-small",
+            licence="Apache-2.0",
+            description="Depth Anything V2 Small, relative disparity",
+        ),
+    )
+)
+register_model(
+    ModelEntry(
+        name="midas-v2.1-small",
+        filename="midas_v21_small_model-small.onnx",
+        licence="MIT",
+        description="MiDaS v2.1 small (EfficientNet-Lite3 encoder), relative disparity; "
+        "isl-org/MiDaS release v2_1",
+        url="https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx",
+        approx_mb=66,
+        spec=ModelSpec(
+            layout="NCHW",
+            color="RGB",
+            scale=1 / 255,
+            mean=list(IMAGENET_MEAN),
+            std=list(IMAGENET_STD),
+            resize={"mode": "fixed", "width": 256, "height": 256},
+            output="disparity",
+            name="midas-v2.1-small",
+            licence="MIT",
+            description="MiDaS v2.1 small, relative disparity",
+        ),
+    )
+)
 
 
 # ---------------------------------------------------------------------------------------
@@ -133,8 +162,10 @@ def get_entry(name: str) -> ModelEntry:
     try:
         return REGISTRY[name]
     except KeyError:
-        raise ValueError(f"unknown depth model {name!r}; known: {', '.join(REGISTRY)} "
-                         f"(or give a path to an .onnx file)") from None
+        raise ValueError(
+            f"unknown depth model {name!r}; known: {', '.join(REGISTRY)} "
+            f"(or give a path to an .onnx file)"
+        ) from None
 
 
 def model_path(name: str) -> Path:
@@ -157,13 +188,14 @@ def sha256_file(path: Path) -> str:
 
 def _manual_hint(entry: ModelEntry, dest: Path) -> str:
     sha = expected_sha256(entry)
-    return (f"download {entry.url} by other means and place it at {dest}"
-            + (f" (sha256 {sha})" if sha else "")
-            + f", or set RECTIFIED_COLMAP_CACHE to a folder holding {entry.filename}")
+    return (
+        f"download {entry.url} by other means and place it at {dest}"
+        + (f" (sha256 {sha})" if sha else "")
+        + f", or set RECTIFIED_COLMAP_CACHE to a folder holding {entry.filename}"
+    )
 
 
-def download(name: str, force: bool = False, progress: bool = True,
-             timeout: float = 30.0) -> Path:
+def download(name: str, force: bool = False, progress: bool = True, timeout: float = 30.0) -> Path:
     """Fetch a registered model into the cache (no-op when present) and return its path.
 
     Streams to a temporary file in the cache folder, verifies size and sha256, then moves it
@@ -175,49 +207,62 @@ def download(name: str, force: bool = False, progress: bool = True,
             raise FileNotFoundError(
                 f"the embedded depth model {name!r} is missing from the package ({dest}); "
                 f"this build does not ship it: train/export it (docs/training.md) or use "
-                f"another model (`rectified-colmap models list`) or a path to an .onnx")
+                f"another model (`rectified-colmap models list`) or a path to an .onnx"
+            )
         return dest
     if dest.is_file() and not force:
         if entry.size is None or dest.stat().st_size == entry.size:
             return dest
-        logger.warning("%s has size %d, expected %d: downloading again", dest,
-                       dest.stat().st_size, entry.size)
+        logger.warning(
+            "%s has size %d, expected %d: downloading again", dest, dest.stat().st_size, entry.size
+        )
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise ModelDownloadError(f"cannot create the model cache {dest.parent} ({e}); set "
-                                 f"RECTIFIED_COLMAP_CACHE to a writable folder") from None
+        raise ModelDownloadError(
+            f"cannot create the model cache {dest.parent} ({e}); set "
+            f"RECTIFIED_COLMAP_CACHE to a writable folder"
+        ) from None
     sha = expected_sha256(entry)
     logger.info("downloading %s (%s) from %s to %s", name, entry.licence, entry.url, dest)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{entry.filename}.", suffix=".part",
-                                    dir=dest.parent)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{entry.filename}.", suffix=".part", dir=dest.parent)
     tmp = Path(tmp_name)
     try:
         digest, n = _stream(entry.url, fd, timeout, progress, entry.filename)
         if entry.size is not None and n != entry.size:
-            raise ModelDownloadError(f"{entry.url}: got {n} bytes, expected {entry.size} "
-                                     f"(truncated or changed upstream)")
+            raise ModelDownloadError(
+                f"{entry.url}: got {n} bytes, expected {entry.size} (truncated or changed upstream)"
+            )
         if sha is not None and digest != sha:
-            raise ModelDownloadError(f"{entry.url}: sha256 mismatch: got {digest}, expected "
-                                     f"{sha}; the file was discarded")
+            raise ModelDownloadError(
+                f"{entry.url}: sha256 mismatch: got {digest}, expected "
+                f"{sha}; the file was discarded"
+            )
         if sha is None:
             logger.warning(
                 "!!! %s has NO pinned sha256 (upstream publishes none): the downloaded file "
-                "is unverified. Its sha256 is %s; pin it with %s=%s !!!", name, digest,
-                _env_key(name), digest)
+                "is unverified. Its sha256 is %s; pin it with %s=%s !!!",
+                name,
+                digest,
+                _env_key(name),
+                digest,
+            )
         os.replace(tmp, dest)
     except urllib.error.HTTPError as e:
         raise ModelDownloadError(
             f"cannot download depth model {name!r} from {entry.url}: HTTP {e.code} "
-            f"{e.reason}; {_manual_hint(entry, dest)}") from None
+            f"{e.reason}; {_manual_hint(entry, dest)}"
+        ) from None
     except urllib.error.URLError as e:
         raise ModelDownloadError(
             f"cannot download depth model {name!r} from {entry.url} "
-            f"({getattr(e, 'reason', e)}): offline? {_manual_hint(entry, dest)}") from None
+            f"({getattr(e, 'reason', e)}): offline? {_manual_hint(entry, dest)}"
+        ) from None
     except (OSError, http.client.HTTPException) as e:
         raise ModelDownloadError(
             f"download of {name!r} from {entry.url} failed ({type(e).__name__}: {e}); "
-            f"{_manual_hint(entry, dest)}") from None
+            f"{_manual_hint(entry, dest)}"
+        ) from None
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -225,8 +270,7 @@ def download(name: str, force: bool = False, progress: bool = True,
     return dest
 
 
-def _stream(url: str, fd: int, timeout: float, progress: bool, label: str
-            ) -> tuple[str, int]:
+def _stream(url: str, fd: int, timeout: float, progress: bool, label: str) -> tuple[str, int]:
     """Copy ``url`` into the open file descriptor ``fd`` -> (sha256 hex, byte count).
     Raises when fewer bytes arrive than the server announced."""
     from tqdm import tqdm
@@ -235,8 +279,7 @@ def _stream(url: str, fd: int, timeout: float, progress: bool, label: str
     with os.fdopen(fd, "wb") as f, urllib.request.urlopen(url, timeout=timeout) as r:
         total = r.headers.get("Content-Length")
         total = int(total) if total and total.isdigit() else None
-        with tqdm(total=total, unit="B", unit_scale=True, desc=label,
-                  disable=not progress) as bar:
+        with tqdm(total=total, unit="B", unit_scale=True, desc=label, disable=not progress) as bar:
             while True:
                 block = r.read(CHUNK)
                 if not block:
@@ -265,15 +308,18 @@ def resolve_model(name_or_path: str | Path, download_missing: bool = True) -> Pa
             return path
         if entry.embedded or download_missing:
             return download(s)
-        raise FileNotFoundError(f"depth model {s!r} is not in the cache ({path}); run "
-                                f"`rectified-colmap models download {s}`")
+        raise FileNotFoundError(
+            f"depth model {s!r} is not in the cache ({path}); run "
+            f"`rectified-colmap models download {s}`"
+        )
     path = Path(name_or_path).expanduser()
     if path.is_file():
         return path
     if path.suffix == ".onnx" or os.sep in s or "/" in s:
         raise FileNotFoundError(f"{path}: depth model file does not exist")
-    raise ValueError(f"unknown depth model {s!r}; known: {', '.join(REGISTRY)} "
-                     f"(or give a path to an .onnx file)")
+    raise ValueError(
+        f"unknown depth model {s!r}; known: {', '.join(REGISTRY)} (or give a path to an .onnx file)"
+    )
 
 
 def load_depth_source(name_or_path: str | Path, **kwargs):

@@ -40,9 +40,13 @@ def disparity_to_depth(disparity: np.ndarray, shift: float = 0.0) -> np.ndarray:
     return np.where(np.isfinite(z) & (z > 0), z, np.nan).astype(np.float32)
 
 
-def orthogonality_cost(normals: np.ndarray, plane_conf: PlaneConf,
-                       rng: np.random.Generator, min_support: float = 0.05,
-                       min_count: int = 50) -> float:
+def orthogonality_cost(
+    normals: np.ndarray,
+    plane_conf: PlaneConf,
+    rng: np.random.Generator,
+    min_support: float = 0.05,
+    min_count: int = 50,
+) -> float:
     """|cos| of the angle between the mean normals of the two best-supported dominant
     clusters (0 = orthogonal); inf when fewer than two clusters have enough support.
 
@@ -73,8 +77,9 @@ def orthogonality_cost(normals: np.ndarray, plane_conf: PlaneConf,
     return float(abs(means[0] @ means[1]))
 
 
-def candidate_shifts(disparity: np.ndarray, num: int = 15, lo: float = -2.0,
-                     hi: float = 1.5) -> np.ndarray:
+def candidate_shifts(
+    disparity: np.ndarray, num: int = 15, lo: float = -2.0, hi: float = 1.5
+) -> np.ndarray:
     """Shifts t = p_low - spread * 10^k for k in [lo, hi] (p_low: 1st percentile of the
     valid disparity, spread: median - p_low), so that p - t > 0 almost everywhere."""
     p = disparity[np.isfinite(disparity)]
@@ -85,9 +90,14 @@ def candidate_shifts(disparity: np.ndarray, num: int = 15, lo: float = -2.0,
     return p_low - spread * 10.0 ** np.linspace(lo, hi, num)
 
 
-def estimate_shift(disparity: np.ndarray, camera: pycolmap.Camera,
-                   conf: ExtractConf | None = None, rng: np.random.Generator | None = None,
-                   max_size: int = 160, levels: int = 3) -> float:
+def estimate_shift(
+    disparity: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: ExtractConf | None = None,
+    rng: np.random.Generator | None = None,
+    max_size: int = 160,
+    levels: int = 3,
+) -> float:
     """Shift t of p = s / z + t making the two strongest dominant planes orthogonal
     (see module docstring). Returns 0.0 when no shift shows two planes."""
     from .. import camera as cam_utils
@@ -101,8 +111,13 @@ def estimate_shift(disparity: np.ndarray, camera: pycolmap.Camera,
     p = resample_depth(disparity, w, h)
     rays = cam_utils.grid_rays(camera, w, h)
     ncf = NormalConf(**{**vars(conf.normals)})
-    pcf = PlaneConf(**{**vars(conf.planes), "num_samples": min(conf.planes.num_samples, 4000),
-                       "num_restarts": min(conf.planes.num_restarts, 3)})
+    pcf = PlaneConf(
+        **{
+            **vars(conf.planes),
+            "num_samples": min(conf.planes.num_samples, 4000),
+            "num_restarts": min(conf.planes.num_restarts, 3),
+        }
+    )
 
     def cost(t: float) -> float:
         z = disparity_to_depth(p, t)
@@ -127,6 +142,5 @@ def estimate_shift(disparity: np.ndarray, camera: pycolmap.Camera,
         k = np.linspace(k - 3 * step, k + 3 * step, 7)[int(np.argmin(cs[-7:]))]
     ts, cs = np.array(ts), np.array(cs)
     best = int(np.argmin(cs))
-    logger.debug("orthogonal shift: t = %.4g (|cos| %.4f; t = 0: %.4f)", ts[best], cs[best],
-                 cost0)
+    logger.debug("orthogonal shift: t = %.4g (|cos| %.4f; t = 0: %.4f)", ts[best], cs[best], cost0)
     return float(ts[best])

@@ -67,8 +67,9 @@ def read_query_list(path: Path | str) -> dict[str, pycolmap.Camera]:
             raise ValueError(f"{path}:{i}: expected 'name MODEL W H params...'")
         name, model, w, h, *params = parts
         try:
-            cam = pycolmap.Camera(model=model, width=int(w), height=int(h),
-                                  params=[float(p) for p in params])
+            cam = pycolmap.Camera(
+                model=model, width=int(w), height=int(h), params=[float(p) for p in params]
+            )
         except (RuntimeError, TypeError, ValueError) as e:
             raise ValueError(f"{path}:{i}: invalid camera ({e})") from None
         if not cam.verify_params():
@@ -77,8 +78,9 @@ def read_query_list(path: Path | str) -> dict[str, pycolmap.Camera]:
     return out
 
 
-def filter_pairs(pairs: list[tuple[str, str]], names: set[str] | list[str],
-                 both: bool = True) -> list[tuple[str, str]]:
+def filter_pairs(
+    pairs: list[tuple[str, str]], names: set[str] | list[str], both: bool = True
+) -> list[tuple[str, str]]:
     """Pairs whose images are in ``names`` (both, or the second one when ``both=False``,
     for query-to-database pairs), without duplicates (i, j) / (j, i)."""
     names = set(names)
@@ -94,8 +96,9 @@ def filter_pairs(pairs: list[tuple[str, str]], names: set[str] | list[str],
     return out
 
 
-def set_two_view_config(database: Path | str, config: str = "CALIBRATED",
-                        only_undefined: bool = True) -> int:
+def set_two_view_config(
+    database: Path | str, config: str = "CALIBRATED", only_undefined: bool = True
+) -> int:
     """Give every (UNDEFINED) two-view geometry of a database a configuration.
 
     Returns the number of geometries rewritten. Needed after hloc's triangulation steps with
@@ -148,8 +151,9 @@ def check_results(path: Path | str, query_names: list[str]) -> tuple[int, list[s
     return len(seen), sorted(expected - seen)
 
 
-def group_by_camera(cameras: Mapping[str, pycolmap.Camera]
-                    ) -> list[tuple[str, tuple[float, ...], list[str]]]:
+def group_by_camera(
+    cameras: Mapping[str, pycolmap.Camera],
+) -> list[tuple[str, tuple[float, ...], list[str]]]:
     """Queries grouped by identical (model, size, params): one extraction call per group.
 
     Returns [(model name, params, names)], names sorted, groups in first-seen order."""
@@ -162,14 +166,17 @@ def group_by_camera(cameras: Mapping[str, pycolmap.Camera]
 
 # -- hloc: import, API generation, triangulation with the pycolmap 4.2 fix ------------------
 
+
 class HlocError(RuntimeError):
     """hloc is missing, cannot be imported, or has an API this code does not know."""
 
 
-HLOC_INSTALL = ("hloc is not on PyPI: clone its GitHub repository "
-                "(cvg/Hierarchical-Localization) and `pip install -e .` in it, or install the "
-                "vendored copy with `pip install --no-deps ../shared/vendor/hloc`; it needs "
-                "torch, kornia, scipy, matplotlib and plotly (docs/hloc.md)")
+HLOC_INSTALL = (
+    "hloc is not on PyPI: clone its GitHub repository "
+    "(cvg/Hierarchical-Localization) and `pip install -e .` in it, or install the "
+    "vendored copy with `pip install --no-deps ../shared/vendor/hloc`; it needs "
+    "torch, kornia, scipy, matplotlib and plotly (docs/hloc.md)"
+)
 
 
 def import_hloc():
@@ -181,8 +188,10 @@ def import_hloc():
         missing = getattr(e, "name", None) or str(e)
         if missing == "hloc" or missing.startswith("hloc"):
             raise HlocError(f"hloc is not installed. {HLOC_INSTALL}") from None
-        raise HlocError(f"hloc is installed but cannot be imported: {e} "
-                        f"(missing dependency {missing!r}). {HLOC_INSTALL}") from None
+        raise HlocError(
+            f"hloc is installed but cannot be imported: {e} "
+            f"(missing dependency {missing!r}). {HLOC_INSTALL}"
+        ) from None
     hloc_generation(triangulation)  # raises HlocError when unknown
     return hloc
 
@@ -192,8 +201,13 @@ def hloc_generation(triangulation) -> str:
     path), from the signature of ``triangulation.import_features``; both say version 1.5."""
     import inspect
 
-    fns = ("create_db_from_model", "import_features", "import_matches",
-           "geometric_verification", "run_triangulation")
+    fns = (
+        "create_db_from_model",
+        "import_features",
+        "import_matches",
+        "geometric_verification",
+        "run_triangulation",
+    )
     missing = [f for f in fns if not callable(getattr(triangulation, f, None))]
     if missing:
         raise HlocError(f"hloc.triangulation has no {missing}: unsupported hloc version")
@@ -202,8 +216,10 @@ def hloc_generation(triangulation) -> str:
         return "db"
     if "database_path" in params:
         return "path"
-    raise HlocError("hloc.triangulation.import_features takes neither `db` nor "
-                    f"`database_path` ({list(params)}): unsupported hloc version")
+    raise HlocError(
+        "hloc.triangulation.import_features takes neither `db` nor "
+        f"`database_path` ({list(params)}): unsupported hloc version"
+    )
 
 
 def call_with(fn, **available):
@@ -213,18 +229,29 @@ def call_with(fn, **available):
 
     params = inspect.signature(fn).parameters
     kwargs = {k: v for k, v in available.items() if k in params}
-    missing = [k for k, p in params.items() if p.default is p.empty and k not in kwargs
-               and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    missing = [
+        k
+        for k, p in params.items()
+        if p.default is p.empty
+        and k not in kwargs
+        and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
     if missing:
-        raise HlocError(f"hloc {fn.__module__}.{fn.__name__} needs {missing}: unsupported "
-                        "hloc version")
+        raise HlocError(
+            f"hloc {fn.__module__}.{fn.__name__} needs {missing}: unsupported hloc version"
+        )
     return fn(**kwargs)
 
 
-def triangulate_with_hloc(reference_model: Path | str | pycolmap.Reconstruction,
-                          sfm_dir: Path | str, image_dir: Path | str, pairs: Path | str,
-                          features: Path | str, matches: Path | str,
-                          max_error: float = 4.0) -> pycolmap.Reconstruction:
+def triangulate_with_hloc(
+    reference_model: Path | str | pycolmap.Reconstruction,
+    sfm_dir: Path | str,
+    image_dir: Path | str,
+    pairs: Path | str,
+    features: Path | str,
+    matches: Path | str,
+    max_error: float = 4.0,
+) -> pycolmap.Reconstruction:
     """hloc.triangulation.main's steps (known poses, matches verified against them), with
     every UNDEFINED two-view geometry set to CALIBRATED before ``triangulate_points``:
     stock ``main`` triangulates 0 points under pycolmap 4.2. Works with both hloc API
@@ -236,12 +263,22 @@ def triangulate_with_hloc(reference_model: Path | str | pycolmap.Reconstruction,
     sfm_dir, features, pairs, matches = map(Path, (sfm_dir, features, pairs, matches))
     sfm_dir.mkdir(parents=True, exist_ok=True)
     database = sfm_dir / "database.db"
-    reference = (reference_model if isinstance(reference_model, pycolmap.Reconstruction)
-                 else pycolmap.Reconstruction(str(reference_model)))
+    reference = (
+        reference_model
+        if isinstance(reference_model, pycolmap.Reconstruction)
+        else pycolmap.Reconstruction(str(reference_model))
+    )
     image_ids = triangulation.create_db_from_model(reference, database)
-    args = {"image_ids": image_ids, "reference": reference, "features_path": features,
-            "pairs_path": pairs, "matches_path": matches, "min_match_score": None,
-            "skip_geometric_verification": False, "max_error": max_error}
+    args = {
+        "image_ids": image_ids,
+        "reference": reference,
+        "features_path": features,
+        "pairs_path": pairs,
+        "matches_path": matches,
+        "min_match_score": None,
+        "skip_geometric_verification": False,
+        "max_error": max_error,
+    }
     if generation == "db":
         with pycolmap.Database.open(database) as db:
             call_with(triangulation.import_features, db=db, **args)
@@ -253,14 +290,18 @@ def triangulate_with_hloc(reference_model: Path | str | pycolmap.Reconstruction,
         call_with(triangulation.geometric_verification, database_path=database, **args)
     n = set_two_view_config(database, "CALIBRATED")
     logger.info("pycolmap 4.2 fix: %d verified two-view geometries given config CALIBRATED", n)
-    rec = call_with(triangulation.run_triangulation, model_path=sfm_dir,
-                    database_path=database, image_dir=Path(image_dir),
-                    reference_model=reference)
-    logger.info("reference model: %d images, %d points", rec.num_reg_images(),
-                rec.num_points3D())
+    rec = call_with(
+        triangulation.run_triangulation,
+        model_path=sfm_dir,
+        database_path=database,
+        image_dir=Path(image_dir),
+        reference_model=reference,
+    )
+    logger.info("reference model: %d images, %d points", rec.num_reg_images(), rec.num_points3D())
     if rec.num_points3D() == 0:
-        raise RuntimeError(f"{sfm_dir}: 0 points triangulated: check the pairs, features "
-                           "and matches")
+        raise RuntimeError(
+            f"{sfm_dir}: 0 points triangulated: check the pairs, features and matches"
+        )
     return rec
 
 
@@ -285,6 +326,7 @@ def localize_sfm_fallbacks(results: Path | str) -> list[str]:
 
 # -- database images with the reference model's intrinsics ----------------------------------
 
+
 def write_camera_database(path: Path | str, cameras: Mapping[str, pycolmap.Camera]) -> int:
     """A COLMAP database with one camera per image (identical cameras shared) and no
     features: ``rectified_colmap.extract.extract(database=path)`` then uses these cameras
@@ -297,8 +339,9 @@ def write_camera_database(path: Path | str, cameras: Mapping[str, pycolmap.Camer
         for name, cam in cameras.items():
             key = (cam.model.name, cam.width, cam.height, tuple(float(p) for p in cam.params))
             if key not in ids:
-                c = pycolmap.Camera(model=cam.model.name, width=cam.width, height=cam.height,
-                                    params=list(key[3]))
+                c = pycolmap.Camera(
+                    model=cam.model.name, width=cam.width, height=cam.height, params=list(key[3])
+                )
                 c.has_prior_focal_length = True
                 ids[key] = db.write_camera(c)
             db.write_image(pycolmap.Image(name=name, camera_id=ids[key]))
@@ -312,9 +355,15 @@ def model_cameras(model: pycolmap.Reconstruction) -> dict[str, pycolmap.Camera]:
 
 # -- a mini Aachen from a posed scene, and localization errors ------------------------------
 
-def make_mini_aachen(scene: Path | str, out: Path | str, max_size: int | None = None,
-                     holdout_every: int = 3, holdout_offset: int = 1,
-                     num_queries: int | None = None) -> dict[str, Path]:
+
+def make_mini_aachen(
+    scene: Path | str,
+    out: Path | str,
+    max_size: int | None = None,
+    holdout_every: int = 3,
+    holdout_offset: int = 1,
+    num_queries: int | None = None,
+) -> dict[str, Path]:
     """An Aachen-layout dataset from a scene with ``images/`` and a posed ``sparse/`` model
     (e.g. Strecha): every ``holdout_every``-th image (from ``holdout_offset``) becomes a
     held-out query (the first ``num_queries`` of them when given; the others are left out),
@@ -365,12 +414,16 @@ def make_mini_aachen(scene: Path | str, out: Path | str, max_size: int | None = 
             cam.camera_id = k
             ref.add_camera_with_trivial_rig(cam)
             ref.add_image_with_trivial_frame(
-                pycolmap.Image(name=new, camera_id=k, image_id=k), im.cam_from_world())
-    paths = {"dataset": out, "images": root,
-             "queries": out / "queries" / "day_time_queries_with_intrinsics.txt",
-             "reference_sfm": out / "3D-models" / "reference",
-             "loc_pairs": out / "pairs-query-exhaustive.txt",
-             "ground_truth": out / "ground_truth.txt"}
+                pycolmap.Image(name=new, camera_id=k, image_id=k), im.cam_from_world()
+            )
+    paths = {
+        "dataset": out,
+        "images": root,
+        "queries": out / "queries" / "day_time_queries_with_intrinsics.txt",
+        "reference_sfm": out / "3D-models" / "reference",
+        "loc_pairs": out / "pairs-query-exhaustive.txt",
+        "ground_truth": out / "ground_truth.txt",
+    }
     paths["queries"].parent.mkdir(parents=True, exist_ok=True)
     write_query_list(paths["queries"], queries)
     paths["reference_sfm"].mkdir(parents=True, exist_ok=True)
@@ -378,13 +431,13 @@ def make_mini_aachen(scene: Path | str, out: Path | str, max_size: int | None = 
     db = sorted(new_names[n] for n in db_names)
     paths["loc_pairs"].write_text("".join(f"{q} {d}\n" for q in sorted(queries) for d in db))
     paths["ground_truth"].write_text("".join(line + "\n" for line in sorted(gt_lines)))
-    logger.info("mini Aachen in %s: %d database images, %d queries", out, len(db),
-                len(queries))
+    logger.info("mini Aachen in %s: %d database images, %d queries", out, len(db), len(queries))
     return paths
 
 
-def localization_errors(results: Path | str, ground_truth: Path | str
-                        ) -> dict[str, tuple[float, float]]:
+def localization_errors(
+    results: Path | str, ground_truth: Path | str
+) -> dict[str, tuple[float, float]]:
     """Per ground-truth query: (camera-centre error in model units, rotation error in
     degrees) of a result file; (inf, inf) when it has no line. Both files key queries by
     base name (the benchmark format)."""
@@ -398,9 +451,11 @@ def localization_errors(results: Path | str, ground_truth: Path | str
     return out
 
 
-def recall(errors: Mapping[str, tuple[float, float]],
-           thresholds=((0.25, 2.0), (0.5, 5.0), (5.0, 10.0)),
-           failed: list[str] | tuple = ()) -> list[float]:
+def recall(
+    errors: Mapping[str, tuple[float, float]],
+    thresholds=((0.25, 2.0), (0.5, 5.0), (5.0, 10.0)),
+    failed: list[str] | tuple = (),
+) -> list[float]:
     """Fraction of queries within each (distance, degrees) threshold; queries in ``failed``
     (e.g. localize_sfm fallbacks) count as failures."""
     if not errors:
@@ -411,6 +466,7 @@ def recall(errors: Mapping[str, tuple[float, float]],
 
 
 # -- keypoint orientations for LightGlue ------------------------------------------------------
+
 
 def oris_for_lightglue(oris_deg: np.ndarray) -> np.ndarray:
     """Our (and hloc DoG's) ``oris`` are COLMAP orientations (atan2(a21, a11), image axes)
@@ -430,6 +486,7 @@ def convert_oris_for_lightglue(src: Path | str, dst: Path | str) -> int:
         raise ValueError("convert into a new file: hloc's own readers expect degrees")
     n = 0
     with h5py.File(src, "r") as fi, h5py.File(dst, "w") as fo:
+
         def visit(name, obj):
             nonlocal n
             if isinstance(obj, h5py.Group) and "keypoints" in obj:
@@ -443,5 +500,6 @@ def convert_oris_for_lightglue(src: Path | str, dst: Path | str) -> int:
                     else:
                         fi.copy(d, g, name=k)
                 n += 1
+
         fi.visititems(visit)
     return n

@@ -44,6 +44,7 @@ from .matching import FeatureSource, match_ratio
 
 logger = logging.getLogger(__name__)
 
+
 @dataclass
 class HomographyPair:
     name: str
@@ -66,8 +67,9 @@ def colmap_homography_from_opencv(H: np.ndarray) -> np.ndarray:
     return T @ np.asarray(H, np.float64) @ np.linalg.inv(T)
 
 
-def read_homography_pairs(path: Path | str, image_root: Path | str | None = None
-                          ) -> list[HomographyPair]:
+def read_homography_pairs(
+    path: Path | str, image_root: Path | str | None = None
+) -> list[HomographyPair]:
     """Pairs of a JSON pair file (see the module docstring)."""
     path = Path(path)
     items = json.loads(path.read_text())
@@ -97,8 +99,9 @@ def read_homography_pairs(path: Path | str, image_root: Path | str | None = None
                 sizes.append((img.shape[1], img.shape[0]))
             else:
                 raise ValueError(f"{path}: pair {k}: no {key} and no image_root to read it")
-        out.append(HomographyPair(str(it.get("pair", f"{im0}--{im1}")), im0, im1, H,
-                                  sizes[0], sizes[1]))
+        out.append(
+            HomographyPair(str(it.get("pair", f"{im0}--{im1}")), im0, im1, H, sizes[0], sizes[1])
+        )
     return out
 
 
@@ -139,8 +142,9 @@ def visible_grid(pair: HomographyPair, step: int) -> np.ndarray:
     return g[ok]
 
 
-def homography_errors(H_est: np.ndarray | None, pair: HomographyPair, step: int = 10
-                      ) -> tuple[float, float]:
+def homography_errors(
+    H_est: np.ndarray | None, pair: HomographyPair, step: int = 10
+) -> tuple[float, float]:
     """(corner error, visible-overlap error): mean distances in pixels of image 1 between
     the estimate's and the ground truth's images of the corners / the visible grid; inf
     when there is no estimate or it maps a point behind the camera."""
@@ -156,24 +160,29 @@ def homography_errors(H_est: np.ndarray | None, pair: HomographyPair, step: int 
     return out[0], out[1]
 
 
-def estimate_homography(x0: np.ndarray, x1: np.ndarray, conf: HomographyConf
-                        ) -> tuple[np.ndarray | None, np.ndarray]:
+def estimate_homography(
+    x0: np.ndarray, x1: np.ndarray, conf: HomographyConf
+) -> tuple[np.ndarray | None, np.ndarray]:
     """RANSAC homography between COLMAP pixel frames from (N, 2) matched points ->
     (H or None, (N,) bool inliers). OpenCV's RANSAC is run in COLMAP coordinates directly:
     a homography between the same frames, so no conversion is needed."""
     if len(x0) < 4:
         return None, np.zeros(len(x0), bool)
     cv2.setRNGSeed(0)
-    H, inl = cv2.findHomography(x0.astype(np.float64), x1.astype(np.float64), cv2.RANSAC,
-                                conf.ransac_threshold, maxIters=conf.ransac_iters,
-                                confidence=conf.ransac_confidence)
+    H, inl = cv2.findHomography(
+        x0.astype(np.float64),
+        x1.astype(np.float64),
+        cv2.RANSAC,
+        conf.ransac_threshold,
+        maxIters=conf.ransac_iters,
+        confidence=conf.ransac_confidence,
+    )
     if H is None or not np.isfinite(H).all():
         return None, np.zeros(len(x0), bool)
     return H, inl.ravel().astype(bool)
 
 
-def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf
-                  ) -> dict:
+def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf) -> dict:
     """One pair, one method: f0/f1 dicts with ``keypoints`` (N, 2) COLMAP px and
     ``descriptors`` (N, D). Returns a record (plain dict)."""
     m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
@@ -181,16 +190,25 @@ def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: Homograp
     err = np.linalg.norm(apply_homography(pair.H, x0) - x1, axis=1) if len(m) else np.zeros(0)
     H, inl = estimate_homography(x0, x1, conf)
     ce, ve = homography_errors(H, pair, conf.grid_step)
-    return {"pair": pair.name, "num_kp0": len(f0["keypoints"]),
-            "num_kp1": len(f1["keypoints"]), "num_matches": int(len(m)),
-            "num_gt": int(np.sum(err < conf.gt_threshold)), "num_inliers": int(inl.sum()),
-            "corner_err": ce, "visible_err": ve, "success": bool(ve < conf.success_px)}
+    return {
+        "pair": pair.name,
+        "num_kp0": len(f0["keypoints"]),
+        "num_kp1": len(f1["keypoints"]),
+        "num_matches": int(len(m)),
+        "num_gt": int(np.sum(err < conf.gt_threshold)),
+        "num_inliers": int(inl.sum()),
+        "corner_err": ce,
+        "visible_err": ve,
+        "success": bool(ve < conf.success_px),
+    }
 
 
-def evaluate_homography_pairs(pairs: list[HomographyPair],
-                              methods: Mapping[str, Path | str | Mapping],
-                              conf: HomographyConf = HomographyConf(),
-                              both_directions: bool = True) -> list[dict]:
+def evaluate_homography_pairs(
+    pairs: list[HomographyPair],
+    methods: Mapping[str, Path | str | Mapping],
+    conf: HomographyConf = HomographyConf(),
+    both_directions: bool = True,
+) -> list[dict]:
     """Records for every pair (and, with ``both_directions``, its reverse: H^-1, image 1
     matched to image 0; RANSAC and errors are not symmetric) and method."""
     sources = {k: FeatureSource(v) for k, v in methods.items()}
@@ -198,8 +216,14 @@ def evaluate_homography_pairs(pairs: list[HomographyPair],
     for pair in pairs:
         cases = [(pair, "0->1")]
         if both_directions:
-            cases.append((HomographyPair(pair.name, pair.im1, pair.im0, np.linalg.inv(pair.H),
-                                         pair.size1, pair.size0), "1->0"))
+            cases.append(
+                (
+                    HomographyPair(
+                        pair.name, pair.im1, pair.im0, np.linalg.inv(pair.H), pair.size1, pair.size0
+                    ),
+                    "1->0",
+                )
+            )
         for case, direction in cases:
             for method, src in sources.items():
                 for im in (case.im0, case.im1):
@@ -219,9 +243,12 @@ def homography_markdown(records: list[dict], conf: HomographyConf = HomographyCo
     """Summary per method (cases solved, pairs solved in at least one direction, median
     GT-consistent matches) and a per-case table."""
     methods = list(dict.fromkeys(r["method"] for r in records))
-    lines = [f"| method | cases | solved (visible err < {conf.success_px:g} px) | pairs solved "
-             "(either direction) | median GT-consistent | median corner err (px) | "
-             "median visible err (px) |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        f"| method | cases | solved (visible err < {conf.success_px:g} px) | pairs solved "
+        "(either direction) | median GT-consistent | median corner err (px) | "
+        "median visible err (px) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for m in methods:
         rs = [r for r in records if r["method"] == m]
         pairs = {r["pair"] for r in rs}
@@ -230,25 +257,34 @@ def homography_markdown(records: list[dict], conf: HomographyConf = HomographyCo
             f"| {m} | {len(rs)} | {sum(r['success'] for r in rs)} | "
             f"{len(solved_pairs)} of {len(pairs)} | {np.median([r['num_gt'] for r in rs]):.0f} | "
             f"{_fmt(np.median([r['corner_err'] for r in rs]))} | "
-            f"{_fmt(np.median([r['visible_err'] for r in rs]))} |")
-    lines += ["", "| pair | direction | " + " | ".join(
-        f"{m} GT-consistent / inliers / visible err" for m in methods) + " |",
-        "|---|---|" + "---|" * len(methods)]
+            f"{_fmt(np.median([r['visible_err'] for r in rs]))} |"
+        )
+    lines += [
+        "",
+        "| pair | direction | "
+        + " | ".join(f"{m} GT-consistent / inliers / visible err" for m in methods)
+        + " |",
+        "|---|---|" + "---|" * len(methods),
+    ]
     keys = list(dict.fromkeys((r["pair"], r["direction"]) for r in records))
     by = {(r["pair"], r["direction"], r["method"]): r for r in records}
     for p, d in keys:
         cells = []
         for m in methods:
             r = by.get((p, d, m))
-            cells.append("-" if r is None else
-                         f"{r['num_gt']} / {r['num_inliers']} / {_fmt(r['visible_err'])}"
-                         + (" **ok**" if r["success"] else ""))
+            cells.append(
+                "-"
+                if r is None
+                else f"{r['num_gt']} / {r['num_inliers']} / {_fmt(r['visible_err'])}"
+                + (" **ok**" if r["success"] else "")
+            )
         lines.append(f"| {p} | {d} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
-def plane_normals_from_homography(H: np.ndarray, K0: np.ndarray, K1: np.ndarray,
-                                  x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def plane_normals_from_homography(
+    H: np.ndarray, K0: np.ndarray, K1: np.ndarray, x0: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Oracle orientation of a planar pair: the plane normal in camera 0 and in camera 1
     (unit, facing each camera: n . X < 0) from the ground-truth homography (COLMAP pixel
     frames) and intrinsics K0, K1 (COLMAP convention), e.g. guessed ones.

@@ -43,8 +43,12 @@ def _matrix4(T: pycolmap.Rigid3d) -> np.ndarray:
 def _fundamental(cam0, T0, cam1, T1) -> np.ndarray:
     """F (pixels) between two posed pinhole-part cameras (distortion ignored)."""
     T = _matrix4(T1) @ np.linalg.inv(_matrix4(T0))
-    return fundamental_from_pose(np.asarray(cam0.calibration_matrix()),
-                                 np.asarray(cam1.calibration_matrix()), T[:3, :3], T[:3, 3])
+    return fundamental_from_pose(
+        np.asarray(cam0.calibration_matrix()),
+        np.asarray(cam1.calibration_matrix()),
+        T[:3, :3],
+        T[:3, 3],
+    )
 
 
 def _undistorted_px(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
@@ -54,11 +58,16 @@ def _undistorted_px(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
     return n @ K[:2, :2].T + K[:2, 2]
 
 
-def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
-                    poses: Mapping[str, pycolmap.Rigid3d], features: FeatureSource | Path | str,
-                    work_dir: Path | str, pairs: list[tuple[str, str]] | None = None,
-                    conf: LocalizeConf | None = None,
-                    image_dir: Path | str | None = None) -> pycolmap.Reconstruction:
+def build_reference(
+    names: list[str],
+    cameras: Mapping[str, pycolmap.Camera],
+    poses: Mapping[str, pycolmap.Rigid3d],
+    features: FeatureSource | Path | str,
+    work_dir: Path | str,
+    pairs: list[tuple[str, str]] | None = None,
+    conf: LocalizeConf | None = None,
+    image_dir: Path | str | None = None,
+) -> pycolmap.Reconstruction:
     """Triangulate the features of ``names`` into their known poses -> Reconstruction.
 
     ``pairs`` defaults to all pairs of ``names``. ``work_dir`` receives ``reference.db`` and
@@ -69,8 +78,10 @@ def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
     work_dir.mkdir(parents=True, exist_ok=True)
     missing = [n for n in names if n not in features]
     if missing:
-        raise ValueError(f"{features.path or 'features'}: no features for {len(missing)} "
-                         f"reference image(s), e.g. {missing[:3]}")
+        raise ValueError(
+            f"{features.path or 'features'}: no features for {len(missing)} "
+            f"reference image(s), e.g. {missing[:3]}"
+        )
     db_path = work_dir / "reference.db"
     db_path.unlink(missing_ok=True)
     rec = pycolmap.Reconstruction()
@@ -78,8 +89,12 @@ def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
     feats = {n: features[n] for n in names}
     with pycolmap.Database.open(db_path) as db:
         for i, name in enumerate(names, 1):
-            cam = pycolmap.Camera(model=cameras[name].model, width=cameras[name].width,
-                                  height=cameras[name].height, params=cameras[name].params)
+            cam = pycolmap.Camera(
+                model=cameras[name].model,
+                width=cameras[name].width,
+                height=cameras[name].height,
+                params=cameras[name].params,
+            )
             cam.camera_id = i
             cam.has_prior_focal_length = True
             rec.add_camera_with_trivial_rig(cam)
@@ -87,8 +102,7 @@ def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
             db.write_rig(rec.rig(i), use_rig_id=True)
             im = pycolmap.Image(name=name, camera_id=i, image_id=i)
             rec.add_image_with_trivial_frame(im, poses[name])
-            db.write_image(pycolmap.Image(name=name, camera_id=i, image_id=i),
-                           use_image_id=True)
+            db.write_image(pycolmap.Image(name=name, camera_id=i, image_id=i), use_image_id=True)
             frame = pycolmap.Frame()
             frame.frame_id = i
             frame.rig_id = i
@@ -97,17 +111,21 @@ def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
             db.write_keypoints(i, feats[name]["keypoints"].astype(np.float32))
             ids[name] = i
         if pairs is None:
-            pairs = [(a, b) for k, a in enumerate(names) for b in names[k + 1:]]
+            pairs = [(a, b) for k, a in enumerate(names) for b in names[k + 1 :]]
         n_verified = 0
         for a, b in pairs:
-            m = match_ratio(feats[a]["descriptors"], feats[b]["descriptors"], conf.ratio,
-                            conf.mutual)
+            m = match_ratio(
+                feats[a]["descriptors"], feats[b]["descriptors"], conf.ratio, conf.mutual
+            )
             if len(m) == 0:
                 continue
             ca, cb = cameras[a], cameras[b]
             F = _fundamental(ca, poses[a], cb, poses[b])
-            err = sampson_error(F, _undistorted_px(ca, feats[a]["keypoints"][m[:, 0]]),
-                                _undistorted_px(cb, feats[b]["keypoints"][m[:, 1]]))
+            err = sampson_error(
+                F,
+                _undistorted_px(ca, feats[a]["keypoints"][m[:, 0]]),
+                _undistorted_px(cb, feats[b]["keypoints"][m[:, 1]]),
+            )
             inl = m[err < conf.verify_max_error].astype(np.uint32)
             db.write_matches(ids[a], ids[b], m.astype(np.uint32))
             geom = pycolmap.TwoViewGeometry()
@@ -115,8 +133,9 @@ def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
             geom.inlier_matches = inl
             db.write_two_view_geometry(ids[a], ids[b], geom)
             n_verified += len(inl)
-    logger.info("reference: %d images, %d pairs, %d verified matches", len(names), len(pairs),
-                n_verified)
+    logger.info(
+        "reference: %d images, %d pairs, %d verified matches", len(names), len(pairs), n_verified
+    )
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = 1
     sfm = work_dir / "sfm"
@@ -124,8 +143,11 @@ def build_reference(names: list[str], cameras: Mapping[str, pycolmap.Camera],
     if image_dir is None:  # only used for colours: missing images just log warnings
         image_dir = work_dir
     out = pycolmap.triangulate_points(rec, db_path, Path(image_dir), sfm, options=opts)
-    logger.info("reference model: %d points, mean track %.2f", out.num_points3D(),
-                out.compute_mean_track_length() if out.num_points3D() else 0.0)
+    logger.info(
+        "reference model: %d points, mean track %.2f",
+        out.num_points3D(),
+        out.compute_mean_track_length() if out.num_points3D() else 0.0,
+    )
     return out
 
 
@@ -137,7 +159,9 @@ class QueryResult:
     num_correspondences: int = 0
 
 
-def _reference_index(reference: pycolmap.Reconstruction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _reference_index(
+    reference: pycolmap.Reconstruction,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per database image: (indices of keypoints with a 3D point, their 3D points)."""
     out = {}
     for im in reference.images.values():
@@ -150,19 +174,28 @@ def _reference_index(reference: pycolmap.Reconstruction) -> dict[str, tuple[np.n
     return out
 
 
-def localize_queries(reference: pycolmap.Reconstruction, queries: Mapping[str, pycolmap.Camera],
-                     features: FeatureSource | Path | str,
-                     reference_features: FeatureSource | Path | str | None = None,
-                     conf: LocalizeConf | None = None,
-                     progress: bool = False) -> dict[str, QueryResult]:
+def localize_queries(
+    reference: pycolmap.Reconstruction,
+    queries: Mapping[str, pycolmap.Camera],
+    features: FeatureSource | Path | str,
+    reference_features: FeatureSource | Path | str | None = None,
+    conf: LocalizeConf | None = None,
+    progress: bool = False,
+) -> dict[str, QueryResult]:
     """Localize each query (name -> camera) against the reference model."""
     from tqdm import tqdm
 
     conf = conf or LocalizeConf()
     features = features if isinstance(features, FeatureSource) else FeatureSource(features)
-    ref_feats = features if reference_features is None else (
-        reference_features if isinstance(reference_features, FeatureSource)
-        else FeatureSource(reference_features))
+    ref_feats = (
+        features
+        if reference_features is None
+        else (
+            reference_features
+            if isinstance(reference_features, FeatureSource)
+            else FeatureSource(reference_features)
+        )
+    )
     index = _reference_index(reference)
     db = {n: ref_feats[n] for n in index if len(index[n][0])}
     est = pycolmap.AbsolutePoseEstimationOptions()
@@ -181,14 +214,17 @@ def localize_queries(reference: pycolmap.Reconstruction, queries: Mapping[str, p
             ok = (pos < len(idx)) & (idx[np.minimum(pos, len(idx) - 1)] == m[:, 1])
             per_db.append((len(m), fq["keypoints"][m[ok, 0]], xyz[pos[ok]]))
         if conf.num_retrieved > 0:
-            per_db = sorted(per_db, key=lambda x: -x[0])[:conf.num_retrieved]
+            per_db = sorted(per_db, key=lambda x: -x[0])[: conf.num_retrieved]
         p2 = np.concatenate([x[1] for x in per_db]) if per_db else np.zeros((0, 2))
         p3 = np.concatenate([x[2] for x in per_db]) if per_db else np.zeros((0, 3))
         res = None
         if len(p2) >= 4:
             res = pycolmap.estimate_and_refine_absolute_pose(
-                np.ascontiguousarray(p2, np.float64), np.ascontiguousarray(p3, np.float64),
-                cam, estimation_options=est)
+                np.ascontiguousarray(p2, np.float64),
+                np.ascontiguousarray(p3, np.float64),
+                cam,
+                estimation_options=est,
+            )
         if res is None:
             results[q] = QueryResult(q, None, 0, len(p2))
         else:
@@ -204,15 +240,21 @@ def pose_error(est: pycolmap.Rigid3d, gt: pycolmap.Rigid3d) -> tuple[float, floa
     return float(np.linalg.norm(ce - cg)), rotation_angle_deg(Re.T @ Rg)
 
 
-def pose_accuracy(results: Mapping[str, QueryResult], gt: Mapping[str, pycolmap.Rigid3d],
-                  thresholds=((0.25, 2.0), (0.5, 5.0), (5.0, 10.0))) -> list[float]:
+def pose_accuracy(
+    results: Mapping[str, QueryResult],
+    gt: Mapping[str, pycolmap.Rigid3d],
+    thresholds=((0.25, 2.0), (0.5, 5.0), (5.0, 10.0)),
+) -> list[float]:
     """Fraction of the ground-truth queries within each (distance, degrees) threshold;
     a query without a result counts as a failure."""
     errs = []
     for name, T in gt.items():
         r = results.get(name)
-        errs.append((np.inf, np.inf) if r is None or r.cam_from_world is None
-                    else pose_error(r.cam_from_world, T))
+        errs.append(
+            (np.inf, np.inf)
+            if r is None or r.cam_from_world is None
+            else pose_error(r.cam_from_world, T)
+        )
     errs = np.array(errs, float).reshape(-1, 2)
     if not len(errs):
         raise ValueError("no ground-truth queries")
@@ -229,8 +271,7 @@ def format_pose(name: str, T: pycolmap.Rigid3d) -> str:
     return " ".join([name] + [f"{v:.10g}" for v in (*q, *t)])
 
 
-def write_poses(path: Path | str, results: Mapping[str, QueryResult],
-                basename: bool = True) -> int:
+def write_poses(path: Path | str, results: Mapping[str, QueryResult], basename: bool = True) -> int:
     """Write the localized queries (result-file format of the Aachen benchmark, which keys
     images by their base name, as hloc does); returns the number of lines."""
     lines = []
@@ -252,15 +293,14 @@ def read_poses(path: Path | str) -> dict[str, pycolmap.Rigid3d]:
         if len(parts) != 8:
             raise ValueError(f"{path}:{i}: expected 'name qw qx qy qz tx ty tz'")
         w, x, y, z, *t = (float(v) for v in parts[1:])
-        out[parts[0]] = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])),
-                                         np.array(t))
+        out[parts[0]] = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), np.array(t))
     return out
 
 
 # -- a whole run from a posed model ---------------------------------------------------------
 
-def holdout_split(names: list[str], every: int = 3, offset: int = 1
-                  ) -> tuple[list[str], list[str]]:
+
+def holdout_split(names: list[str], every: int = 3, offset: int = 1) -> tuple[list[str], list[str]]:
     """Sorted names -> (database, queries): every ``every``-th image (from ``offset``) is a
     query."""
     if every < 2:
@@ -270,12 +310,17 @@ def holdout_split(names: list[str], every: int = 3, offset: int = 1
     return [n for n in names if n not in set(queries)], queries
 
 
-def localize_with_model(model: pycolmap.Reconstruction, features: FeatureSource | Path | str,
-                        work_dir: Path | str, queries: Mapping[str, pycolmap.Camera] | None = None,
-                        holdout_every: int = 3, name_prefix: str = "",
-                        conf: LocalizeConf | None = None, progress: bool = False,
-                        image_dir: Path | str | None = None
-                        ) -> tuple[dict[str, QueryResult], list[float] | None]:
+def localize_with_model(
+    model: pycolmap.Reconstruction,
+    features: FeatureSource | Path | str,
+    work_dir: Path | str,
+    queries: Mapping[str, pycolmap.Camera] | None = None,
+    holdout_every: int = 3,
+    name_prefix: str = "",
+    conf: LocalizeConf | None = None,
+    progress: bool = False,
+    image_dir: Path | str | None = None,
+) -> tuple[dict[str, QueryResult], list[float] | None]:
     """Reference from the posed images of ``model`` (minus held-out queries), then localize.
 
     With ``queries`` (name -> camera; names as in the feature file) every posed model image
@@ -289,21 +334,29 @@ def localize_with_model(model: pycolmap.Reconstruction, features: FeatureSource 
         queries = {n: model.cameras[posed[n].camera_id] for n in q_names}
     else:
         db_names = sorted(n for n in posed if n not in queries)
-    ref = build_reference(db_names, {n: model.cameras[posed[n].camera_id] for n in db_names},
-                          {n: posed[n].cam_from_world() for n in db_names}, features,
-                          work_dir, conf=conf, image_dir=image_dir)
+    ref = build_reference(
+        db_names,
+        {n: model.cameras[posed[n].camera_id] for n in db_names},
+        {n: posed[n].cam_from_world() for n in db_names},
+        features,
+        work_dir,
+        conf=conf,
+        image_dir=image_dir,
+    )
     results = localize_queries(ref, queries, features, conf=conf, progress=progress)
     gt = {n: posed[n].cam_from_world() for n in queries if n in posed}
     acc = pose_accuracy(results, gt, conf.thresholds) if gt else None
     return results, acc
 
 
-def accuracy_table(rows: Mapping[str, list[float]], thresholds, num_queries: Mapping[str, int]
-                   ) -> str:
+def accuracy_table(
+    rows: Mapping[str, list[float]], thresholds, num_queries: Mapping[str, int]
+) -> str:
     """Markdown: one row per method, the % of queries within each threshold."""
     head = ["method", "queries"] + [f"({d:g} m, {a:g} deg) %" for d, a in thresholds]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m, acc in rows.items():
-        lines.append("| " + " | ".join([m, str(num_queries[m])]
-                                       + [f"{100 * v:.1f}" for v in acc]) + " |")
+        lines.append(
+            "| " + " | ".join([m, str(num_queries[m])] + [f"{100 * v:.1f}" for v in acc]) + " |"
+        )
     return "\n".join(lines) + "\n"

@@ -86,13 +86,16 @@ class FeatureSource:
             kp = d["keypoints"]  # already COLMAP convention
         desc = np.asarray(d["descriptors"], np.float32)
         if desc.ndim != 2 or desc.shape[1] != len(kp):
-            raise ValueError(f"{self.source}: {name!r}: descriptors {desc.shape} do not match "
-                             f"{len(kp)} keypoints (expected (D, N))")
+            raise ValueError(
+                f"{self.source}: {name!r}: descriptors {desc.shape} do not match "
+                f"{len(kp)} keypoints (expected (D, N))"
+            )
         return {"keypoints": kp, "descriptors": np.ascontiguousarray(desc.T)}
 
 
-def match_ratio(desc0: np.ndarray, desc1: np.ndarray, ratio: float = 0.8,
-                mutual: bool = False) -> np.ndarray:
+def match_ratio(
+    desc0: np.ndarray, desc1: np.ndarray, ratio: float = 0.8, mutual: bool = False
+) -> np.ndarray:
     """Nearest-neighbour matching with the ratio test.
 
     desc0 (N0, D), desc1 (N1, D) float; any norm (L2 distances are used). Returns (M, 2)
@@ -109,7 +112,7 @@ def match_ratio(desc0: np.ndarray, desc1: np.ndarray, ratio: float = 0.8,
     col_best = np.full(len(d1), np.inf, np.float32)
     col_arg = np.zeros(len(d1), np.int64)
     for s in range(0, len(d0), _CHUNK):
-        a = d0[s:s + _CHUNK]
+        a = d0[s : s + _CHUNK]
         dist2 = (a * a).sum(1)[:, None] + sq1[None] - 2.0 * (a @ d1.T)
         np.maximum(dist2, 0, out=dist2)
         two = np.argpartition(dist2, 1, axis=1)[:, :2]
@@ -117,8 +120,8 @@ def match_ratio(desc0: np.ndarray, desc1: np.ndarray, ratio: float = 0.8,
         order = np.argsort(v, axis=1)
         two = np.take_along_axis(two, order, 1)
         v = np.take_along_axis(v, order, 1)
-        best[s:s + len(a)] = two[:, 0]
-        keep[s:s + len(a)] = v[:, 0] < (ratio ** 2) * v[:, 1]
+        best[s : s + len(a)] = two[:, 0]
+        keep[s : s + len(a)] = v[:, 0] < (ratio**2) * v[:, 1]
         if mutual:
             cb = dist2.argmin(0)
             cv = dist2[cb, np.arange(len(d1))]

@@ -57,16 +57,20 @@ def parse_pair_line(line: str, where: str = "") -> Pair:
     """One SuperGlue-format line -> Pair (raises ValueError naming ``where``)."""
     parts = line.split()
     if len(parts) != 38:
-        raise ValueError(f"{where}: expected 38 fields (name0 name1 rot0 rot1 K0[9] K1[9] "
-                         f"T_0to1[16]), got {len(parts)}")
+        raise ValueError(
+            f"{where}: expected 38 fields (name0 name1 rot0 rot1 K0[9] K1[9] "
+            f"T_0to1[16]), got {len(parts)}"
+        )
     try:
         rot0, rot1 = int(parts[2]), int(parts[3])
         vals = np.array([float(v) for v in parts[4:]], dtype=np.float64)
     except ValueError as e:
         raise ValueError(f"{where}: non-numeric field ({e})") from None
     if rot0 or rot1:
-        raise ValueError(f"{where}: EXIF rotations ({rot0}, {rot1}) are not supported: "
-                         "rotate the images and their intrinsics beforehand")
+        raise ValueError(
+            f"{where}: EXIF rotations ({rot0}, {rot1}) are not supported: "
+            "rotate the images and their intrinsics beforehand"
+        )
     K0, K1, T = vals[:9].reshape(3, 3), vals[9:18].reshape(3, 3), vals[18:].reshape(4, 4)
     if not np.all(np.isfinite(vals)):
         raise ValueError(f"{where}: non-finite values")
@@ -120,40 +124,52 @@ def write_pair_list(path: Path | str, pairs: list[tuple[str, str]]) -> None:
     """Write an hloc pair list; names must not contain whitespace (hloc splits on it)."""
     for a, b in pairs:
         if len(a.split()) != 1 or len(b.split()) != 1:
-            raise ValueError(f"{path}: image names with whitespace cannot go in a pair list: "
-                             f"{a!r} {b!r}")
+            raise ValueError(
+                f"{path}: image names with whitespace cannot go in a pair list: {a!r} {b!r}"
+            )
     Path(path).write_text("".join(f"{a} {b}\n" for a, b in pairs))
 
 
-def pairs_from_model(reconstruction, names: list[str] | None = None,
-                     prefix: str = "") -> list[Pair]:
+def pairs_from_model(
+    reconstruction, names: list[str] | None = None, prefix: str = ""
+) -> list[Pair]:
     """All pairs (i < j) of registered images of a pycolmap.Reconstruction, with GT.
 
     Only pinhole cameras (SIMPLE_PINHOLE, PINHOLE) are allowed: K must be the whole model.
     ``prefix`` is prepended to the image names (e.g. "images/").
     """
-    images = sorted((im for im in reconstruction.images.values() if im.has_pose),
-                    key=lambda im: im.name)
+    images = sorted(
+        (im for im in reconstruction.images.values() if im.has_pose), key=lambda im: im.name
+    )
     if names is not None:
         keep = set(names)
         images = [im for im in images if im.name in keep]
     out = []
     for i, a in enumerate(images):
-        for b in images[i + 1:]:
+        for b in images[i + 1 :]:
             ca, cb = reconstruction.cameras[a.camera_id], reconstruction.cameras[b.camera_id]
             for c in (ca, cb):
                 if c.model.name not in ("SIMPLE_PINHOLE", "PINHOLE"):
-                    raise ValueError(f"camera {c.camera_id} is {c.model.name}: pair ground "
-                                     "truth needs pinhole cameras")
+                    raise ValueError(
+                        f"camera {c.camera_id} is {c.model.name}: pair ground "
+                        "truth needs pinhole cameras"
+                    )
             T = (b.cam_from_world() * a.cam_from_world().inverse()).matrix()
             T = np.vstack([T, [0, 0, 0, 1]])
-            out.append(Pair(prefix + a.name, prefix + b.name,
-                            np.asarray(ca.calibration_matrix()),
-                            np.asarray(cb.calibration_matrix()), T))
+            out.append(
+                Pair(
+                    prefix + a.name,
+                    prefix + b.name,
+                    np.asarray(ca.calibration_matrix()),
+                    np.asarray(cb.calibration_matrix()),
+                    T,
+                )
+            )
     return out
 
 
 # -- Strong Viewpoint Changes (Toft et al. ECCV 2020), best effort -------------------------
+
 
 def read_strong_viewpoint_changes(root: Path | str) -> list[Pair]:
     """Best-effort reader of the Strong Viewpoint Changes dataset (Toft et al., ECCV 2020).
@@ -185,12 +201,16 @@ def read_strong_viewpoint_changes(root: Path | str) -> list[Pair]:
         if (scene / "pairs_with_gt.txt").is_file():
             pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
         else:
-            model = next((scene / d for d in ("sparse", "model")
-                          if (scene / d / "images.bin").is_file()
-                          or (scene / d / "images.txt").is_file()), None)
+            model = next(
+                (
+                    scene / d
+                    for d in ("sparse", "model")
+                    if (scene / d / "images.bin").is_file() or (scene / d / "images.txt").is_file()
+                ),
+                None,
+            )
             if model is None:
-                logger.warning("%s: neither pairs_with_gt.txt nor a COLMAP model; skipped",
-                               scene)
+                logger.warning("%s: neither pairs_with_gt.txt nor a COLMAP model; skipped", scene)
                 continue
             rec = pycolmap.Reconstruction(str(model))
             pairs = pairs_from_model(rec)
@@ -205,9 +225,14 @@ def read_strong_viewpoint_changes(root: Path | str) -> list[Pair]:
             if cat is None:
                 lo = min(int(p.rotation_deg // 10) * 10, 170)
                 cat = f"{lo}-{lo + 10}"
-            out.append(Pair(f"{scene.name}/{p.name0}", f"{scene.name}/{p.name1}", p.K0, p.K1,
-                            p.T_0to1, cat))
+            out.append(
+                Pair(
+                    f"{scene.name}/{p.name0}", f"{scene.name}/{p.name1}", p.K0, p.K1, p.T_0to1, cat
+                )
+            )
     if not out:
-        raise ValueError(f"{root}: no scene with pairs found (see "
-                         "read_strong_viewpoint_changes for the accepted layouts)")
+        raise ValueError(
+            f"{root}: no scene with pairs found (see "
+            "read_strong_viewpoint_changes for the accepted layouts)"
+        )
     return out

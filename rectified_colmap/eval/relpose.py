@@ -36,8 +36,9 @@ logger = logging.getLogger(__name__)
 FAILED_DEG = 180.0
 
 
-def fundamental_from_pose(K0: np.ndarray, K1: np.ndarray, R: np.ndarray, t: np.ndarray
-                          ) -> np.ndarray:
+def fundamental_from_pose(
+    K0: np.ndarray, K1: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> np.ndarray:
     """F with x1^T F x0 = 0 for X1 = R X0 + t (pixel coordinates of K0, K1)."""
     E = skew(np.asarray(t, float)) @ R
     return np.linalg.inv(K1).T @ E @ np.linalg.inv(K0)
@@ -54,8 +55,9 @@ def sampson_error(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
     return np.sqrt(num / np.maximum(den, 1e-30))
 
 
-def pose_errors(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray
-                ) -> tuple[float, float]:
+def pose_errors(
+    R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray
+) -> tuple[float, float]:
     """(rotation error, translation-direction error folded to [0, 90]) in degrees.
 
     A pure rotation (|t_gt| ~ 0) has no translation direction: its t error is 0."""
@@ -68,14 +70,22 @@ def pose_errors(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np
 def _camera(K: np.ndarray):
     import pycolmap
 
-    return pycolmap.Camera(model="PINHOLE", width=max(int(round(2 * K[0, 2])), 1),
-                           height=max(int(round(2 * K[1, 2])), 1),
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    return pycolmap.Camera(
+        model="PINHOLE",
+        width=max(int(round(2 * K[0, 2])), 1),
+        height=max(int(round(2 * K[1, 2])), 1),
+        params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+    )
 
 
-def estimate_relative_pose(x0: np.ndarray, x1: np.ndarray, K0: np.ndarray, K1: np.ndarray,
-                           max_error: float = 2.0, seed: int = 0
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def estimate_relative_pose(
+    x0: np.ndarray,
+    x1: np.ndarray,
+    K0: np.ndarray,
+    K1: np.ndarray,
+    max_error: float = 2.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Essential matrix by LO-RANSAC (pycolmap) -> (R, t, inlier mask) or None.
 
     x0, x1 (N, 2) COLMAP pixels; ``max_error`` in pixels; X1 = R X0 + t, |t| = 1."""
@@ -88,8 +98,12 @@ def estimate_relative_pose(x0: np.ndarray, x1: np.ndarray, K0: np.ndarray, K1: n
     opts.random_seed = int(seed)
     opts.num_threads = 1
     out = pycolmap.estimate_essential_matrix(
-        np.ascontiguousarray(x0, np.float64), np.ascontiguousarray(x1, np.float64),
-        _camera(K0), _camera(K1), opts)
+        np.ascontiguousarray(x0, np.float64),
+        np.ascontiguousarray(x1, np.float64),
+        _camera(K0),
+        _camera(K1),
+        opts,
+    )
     if out is None:
         return None
     T = out["cam2_from_cam1"]
@@ -98,15 +112,16 @@ def estimate_relative_pose(x0: np.ndarray, x1: np.ndarray, K0: np.ndarray, K1: n
     return R, t / max(np.linalg.norm(t), 1e-12), np.asarray(out["inlier_mask"], bool)
 
 
-def evaluate_matches(pair: Pair, kp0: np.ndarray, kp1: np.ndarray, matches: np.ndarray,
-                     conf: EvalConf) -> dict:
+def evaluate_matches(
+    pair: Pair, kp0: np.ndarray, kp1: np.ndarray, matches: np.ndarray, conf: EvalConf
+) -> dict:
     """Errors of one pair given its keypoints (COLMAP px) and matches (M, 2)."""
     x0, x1 = kp0[matches[:, 0]], kp1[matches[:, 1]]
     F = fundamental_from_pose(pair.K0, pair.K1, pair.R, pair.t)
-    correct = sampson_error(F, x0, x1) < conf.epipolar_threshold if len(matches) else \
-        np.zeros(0, bool)
-    est = estimate_relative_pose(x0, x1, pair.K0, pair.K1, conf.ransac_max_error,
-                                 conf.ransac_seed)
+    correct = (
+        sampson_error(F, x0, x1) < conf.epipolar_threshold if len(matches) else np.zeros(0, bool)
+    )
+    est = estimate_relative_pose(x0, x1, pair.K0, pair.K1, conf.ransac_max_error, conf.ransac_seed)
     if est is None:
         r_err = t_err = FAILED_DEG
         n_in = 0
@@ -118,21 +133,29 @@ def evaluate_matches(pair: Pair, kp0: np.ndarray, kp1: np.ndarray, matches: np.n
         n_in_correct = int((inl & correct).sum())
     num_correct = int(correct.sum())
     return {
-        "num_matches": int(len(matches)), "num_inliers": n_in,
-        "num_correct": num_correct, "num_inliers_correct": n_in_correct,
-        "R_err": float(r_err), "t_err": float(t_err), "pose_err": float(max(r_err, t_err)),
+        "num_matches": int(len(matches)),
+        "num_inliers": n_in,
+        "num_correct": num_correct,
+        "num_inliers_correct": n_in_correct,
+        "R_err": float(r_err),
+        "t_err": float(t_err),
+        "pose_err": float(max(r_err, t_err)),
         "success": bool(r_err < conf.success_deg),
         "epipolar_success": bool(num_correct >= conf.min_correct),
     }
 
 
-def evaluate_pair(pair: Pair, features: Mapping[str, FeatureSource], conf: EvalConf
-                  ) -> list[dict]:
+def evaluate_pair(pair: Pair, features: Mapping[str, FeatureSource], conf: EvalConf) -> list[dict]:
     """All methods on one pair -> one record per method."""
     out = []
     for method, src in features.items():
-        rec = {"name0": pair.name0, "name1": pair.name1, "method": method,
-               "gt_rot": pair.rotation_deg, "category": pair.category}
+        rec = {
+            "name0": pair.name0,
+            "name1": pair.name1,
+            "method": method,
+            "gt_rot": pair.rotation_deg,
+            "category": pair.category,
+        }
         f0, f1 = src[pair.name0], src[pair.name1]
         m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
         rec.update(num_kp0=len(f0["keypoints"]), num_kp1=len(f1["keypoints"]))
@@ -175,14 +198,20 @@ def check_features(pairs: list[Pair], features: Mapping[str, Path | str | Mappin
     for method, src in features.items():
         missing = needed - FeatureSource(src).names()
         if missing:
-            raise ValueError(f"method {method!r} ({src if not isinstance(src, Mapping) else 'mapping'}): "
-                             f"no features for {len(missing)} image(s), e.g. "
-                             f"{sorted(missing)[:3]}")
+            raise ValueError(
+                f"method {method!r} ({src if not isinstance(src, Mapping) else 'mapping'}): "
+                f"no features for {len(missing)} image(s), e.g. "
+                f"{sorted(missing)[:3]}"
+            )
 
 
-def evaluate_pairs(pairs: list[Pair], features: Mapping[str, Path | str | Mapping],
-                   conf: EvalConf | None = None, num_workers: int = 1,
-                   progress: bool = True) -> list[dict]:
+def evaluate_pairs(
+    pairs: list[Pair],
+    features: Mapping[str, Path | str | Mapping],
+    conf: EvalConf | None = None,
+    num_workers: int = 1,
+    progress: bool = True,
+) -> list[dict]:
     """Evaluate every method on every pair -> records (pair order, then method order).
 
     ``features``: method name -> hloc feature file (or a features-by-name mapping)."""
@@ -195,8 +224,9 @@ def evaluate_pairs(pairs: list[Pair], features: Mapping[str, Path | str | Mappin
     records: list[dict] = []
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if num_workers > 1 and len(pairs) > 1:
-        with ProcessPoolExecutor(num_workers, initializer=_init,
-                                 initargs=(dict(features), conf)) as ex:
+        with ProcessPoolExecutor(
+            num_workers, initializer=_init, initargs=(dict(features), conf)
+        ) as ex:
             for recs in ex.map(_run, pairs, chunksize=max(1, len(pairs) // (8 * num_workers))):
                 records.extend(recs)
                 bar.update()

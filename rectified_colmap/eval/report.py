@@ -26,9 +26,24 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-RECORD_FIELDS = ["name0", "name1", "method", "gt_rot", "category", "num_kp0", "num_kp1",
-                 "num_matches", "num_inliers", "num_correct", "num_inliers_correct", "R_err",
-                 "t_err", "pose_err", "success", "epipolar_success"]
+RECORD_FIELDS = [
+    "name0",
+    "name1",
+    "method",
+    "gt_rot",
+    "category",
+    "num_kp0",
+    "num_kp1",
+    "num_matches",
+    "num_inliers",
+    "num_correct",
+    "num_inliers_correct",
+    "R_err",
+    "t_err",
+    "pose_err",
+    "success",
+    "epipolar_success",
+]
 
 
 def methods_of(records: list[dict]) -> list[str]:
@@ -65,8 +80,9 @@ def pose_auc(errors: np.ndarray, thresholds=(5.0, 10.0, 20.0)) -> list[float]:
     return out
 
 
-def success_by_bin(records: list[dict], bin_deg: float = 10.0,
-                   key: str = "success") -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def success_by_bin(
+    records: list[dict], bin_deg: float = 10.0, key: str = "success"
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """method -> (success rate per bin (NaN for empty bins), pair count per bin)."""
     edges = bin_edges(bin_deg)
     out = {}
@@ -89,8 +105,9 @@ def median_by_bin(records: list[dict], bin_deg: float, key: str) -> dict[str, np
         rs = [r for r in records if r["method"] == m]
         b = bin_index(np.array([r["gt_rot"] for r in rs]), edges)
         v = np.array([r[key] for r in rs], float)
-        out[m] = np.array([np.median(v[b == k]) if np.any(b == k) else np.nan
-                           for k in range(len(edges) - 1)])
+        out[m] = np.array(
+            [np.median(v[b == k]) if np.any(b == k) else np.nan for k in range(len(edges) - 1)]
+        )
     return out
 
 
@@ -100,12 +117,15 @@ def summary(records: list[dict], auc_thresholds=(5.0, 10.0, 20.0)) -> list[dict]
     for m in methods_of(records):
         rs = [r for r in records if r["method"] == m]
         aucs = pose_auc([r["pose_err"] for r in rs], auc_thresholds)
-        row = {"method": m, "pairs": len(rs),
-               "success": float(np.mean([r["success"] for r in rs])),
-               "epipolar_success": float(np.mean([r["epipolar_success"] for r in rs])),
-               "median_matches": float(np.median([r["num_matches"] for r in rs])),
-               "median_correct": float(np.median([r["num_correct"] for r in rs])),
-               "median_R_err": float(np.median([r["R_err"] for r in rs]))}
+        row = {
+            "method": m,
+            "pairs": len(rs),
+            "success": float(np.mean([r["success"] for r in rs])),
+            "epipolar_success": float(np.mean([r["epipolar_success"] for r in rs])),
+            "median_matches": float(np.median([r["num_matches"] for r in rs])),
+            "median_correct": float(np.median([r["num_correct"] for r in rs])),
+            "median_R_err": float(np.median([r["R_err"] for r in rs])),
+        }
         for t, a in zip(auc_thresholds, aucs):
             row[f"auc@{t:g}"] = a
         rows.append(row)
@@ -118,12 +138,11 @@ def binomial_two_sided_p(k: int, n: int) -> float:
         return 1.0
     from math import comb
 
-    tail = sum(comb(n, i) for i in range(0, min(k, n - k) + 1)) / 2.0 ** n
+    tail = sum(comb(n, i) for i in range(0, min(k, n - k) + 1)) / 2.0**n
     return float(min(1.0, 2.0 * tail))
 
 
-def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0
-                      ) -> list[dict]:
+def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0) -> list[dict]:
     """Each other method against ``baseline`` on the pairs both have, per GT rotation bin and
     overall (``bin`` = None): ``wins``/``losses`` = pairs only the method / only the baseline
     solves, ``p_success`` (exact McNemar), ``more``/``fewer`` = pairs with more / fewer
@@ -152,29 +171,61 @@ def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0
             wins, losses = int((s1 & ~s0)[sel].sum()), int((s0 & ~s1)[sel].sum())
             more, fewer = int((c1 > c0)[sel].sum()), int((c1 < c0)[sel].sum())
             has = sel & (c0 > 0)
-            rows.append({"method": m, "bin": None if k is None else (edges[k], edges[k + 1]),
-                         "pairs": int(sel.sum()), "wins": wins, "losses": losses,
-                         "p_success": binomial_two_sided_p(wins, wins + losses),
-                         "more": more, "fewer": fewer,
-                         "p_correct": binomial_two_sided_p(more, more + fewer),
-                         "median_ratio": float(np.median(c1[has] / c0[has])) if has.any()
-                         else float("nan")})
+            rows.append(
+                {
+                    "method": m,
+                    "bin": None if k is None else (edges[k], edges[k + 1]),
+                    "pairs": int(sel.sum()),
+                    "wins": wins,
+                    "losses": losses,
+                    "p_success": binomial_two_sided_p(wins, wins + losses),
+                    "more": more,
+                    "fewer": fewer,
+                    "p_correct": binomial_two_sided_p(more, more + fewer),
+                    "median_ratio": float(np.median(c1[has] / c0[has]))
+                    if has.any()
+                    else float("nan"),
+                }
+            )
     return rows
 
 
 def paired_markdown(records: list[dict], baseline: str, bin_deg: float = 10.0) -> str:
     """:func:`paired_comparison` as a Markdown table (p < 0.05 in bold)."""
-    head = ["method vs " + baseline, "GT rotation (deg)", "pairs", "solved only by method",
-            "solved only by baseline", "McNemar p", "more GT-correct", "fewer GT-correct",
-            "sign-test p", "median GT-correct ratio"]
+    head = [
+        "method vs " + baseline,
+        "GT rotation (deg)",
+        "pairs",
+        "solved only by method",
+        "solved only by baseline",
+        "McNemar p",
+        "more GT-correct",
+        "fewer GT-correct",
+        "sign-test p",
+        "median GT-correct ratio",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     fmt = lambda p: f"**{p:.3f}**" if p < 0.05 else f"{p:.3f}"  # noqa: E731
     for r in paired_comparison(records, baseline, bin_deg):
         rng = "all" if r["bin"] is None else f"{r['bin'][0]:g}-{r['bin'][1]:g}"
-        lines.append("| " + " | ".join([
-            r["method"], rng, str(r["pairs"]), str(r["wins"]), str(r["losses"]),
-            fmt(r["p_success"]), str(r["more"]), str(r["fewer"]), fmt(r["p_correct"]),
-            "-" if np.isnan(r["median_ratio"]) else f"{r['median_ratio']:.2f}"]) + " |")
+        lines.append(
+            "| "
+            + " | ".join(
+                [
+                    r["method"],
+                    rng,
+                    str(r["pairs"]),
+                    str(r["wins"]),
+                    str(r["losses"]),
+                    fmt(r["p_success"]),
+                    str(r["more"]),
+                    str(r["fewer"]),
+                    fmt(r["p_correct"]),
+                    "-" if np.isnan(r["median_ratio"]) else f"{r['median_ratio']:.2f}",
+                ]
+            )
+            + " |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -182,30 +233,43 @@ def _pct(v: float) -> str:
     return "-" if np.isnan(v) else f"{100 * v:.1f}"
 
 
-def markdown_table(records: list[dict], bin_deg: float = 10.0,
-                   auc_thresholds=(5.0, 10.0, 20.0), success_deg: float = 5.0,
-                   min_correct: int | None = None) -> str:
+def markdown_table(
+    records: list[dict],
+    bin_deg: float = 10.0,
+    auc_thresholds=(5.0, 10.0, 20.0),
+    success_deg: float = 5.0,
+    min_correct: int | None = None,
+) -> str:
     """Two Markdown tables: per-method summary, then success (%) per rotation bin."""
     rows = summary(records, auc_thresholds)
     mc = f" (>= {min_correct} GT-correct)" if min_correct is not None else ""
-    head = (["method", "pairs", f"success (R err < {success_deg:g} deg) %",
-             f"epipolar success{mc} %"]
-            + [f"AUC@{t:g} %" for t in auc_thresholds]
-            + ["median matches", "median GT-correct", "median R err (deg)"])
+    head = (
+        ["method", "pairs", f"success (R err < {success_deg:g} deg) %", f"epipolar success{mc} %"]
+        + [f"AUC@{t:g} %" for t in auc_thresholds]
+        + ["median matches", "median GT-correct", "median R err (deg)"]
+    )
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        vals = ([r["method"], str(r["pairs"]), _pct(r["success"]), _pct(r["epipolar_success"])]
-                + [_pct(r[f"auc@{t:g}"]) for t in auc_thresholds]
-                + [f"{r['median_matches']:.0f}", f"{r['median_correct']:.0f}",
-                   f"{r['median_R_err']:.2f}"])
+        vals = (
+            [r["method"], str(r["pairs"]), _pct(r["success"]), _pct(r["epipolar_success"])]
+            + [_pct(r[f"auc@{t:g}"]) for t in auc_thresholds]
+            + [
+                f"{r['median_matches']:.0f}",
+                f"{r['median_correct']:.0f}",
+                f"{r['median_R_err']:.2f}",
+            ]
+        )
         lines.append("| " + " | ".join(vals) + " |")
     edges = bin_edges(bin_deg)
     per_bin = success_by_bin(records, bin_deg)
     counts = next(iter(per_bin.values()))[1] if per_bin else np.zeros(len(edges) - 1, int)
     used = [k for k in range(len(edges) - 1) if counts[k] > 0]
     correct = median_by_bin(records, bin_deg, "num_correct")
-    head = (["GT rotation (deg)", "pairs"] + [f"{m} success %" for m in per_bin]
-            + [f"{m} median GT-correct" for m in per_bin])
+    head = (
+        ["GT rotation (deg)", "pairs"]
+        + [f"{m} success %" for m in per_bin]
+        + [f"{m} median GT-correct" for m in per_bin]
+    )
     lines += ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k in used:
         vals = [f"{edges[k]:g}-{edges[k + 1]:g}", str(int(counts[k]))]
@@ -233,8 +297,14 @@ def read_csv(path: Path | str) -> list[dict]:
             r = dict(row)
             for k in ("gt_rot", "R_err", "t_err", "pose_err"):
                 r[k] = float(r[k])
-            for k in ("num_kp0", "num_kp1", "num_matches", "num_inliers", "num_correct",
-                      "num_inliers_correct"):
+            for k in (
+                "num_kp0",
+                "num_kp1",
+                "num_matches",
+                "num_inliers",
+                "num_correct",
+                "num_inliers_correct",
+            ):
                 r[k] = int(r[k])
             for k in ("success", "epipolar_success"):
                 r[k] = r[k] == "True"
@@ -243,8 +313,13 @@ def read_csv(path: Path | str) -> list[dict]:
     return out
 
 
-def plot_success(path: Path | str, records: list[dict], bin_deg: float = 10.0,
-                 title: str = "", success_deg: float = 5.0) -> None:
+def plot_success(
+    path: Path | str,
+    records: list[dict],
+    bin_deg: float = 10.0,
+    title: str = "",
+    success_deg: float = 5.0,
+) -> None:
     """PNG like the paper's Figure 5: success rate per GT rotation bin, one curve per method
     (dashed: degeneracy-aware epipolar success)."""
     try:
@@ -253,17 +328,25 @@ def plot_success(path: Path | str, records: list[dict], bin_deg: float = 10.0,
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise ImportError("the plot needs matplotlib: pip install 'rectified-colmap[eval]' "
-                          "(or pip install matplotlib)") from None
+        raise ImportError(
+            "the plot needs matplotlib: pip install 'rectified-colmap[eval]' "
+            "(or pip install matplotlib)"
+        ) from None
     edges = bin_edges(bin_deg)
     centres = 0.5 * (edges[:-1] + edges[1:])
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
     epi = success_by_bin(records, bin_deg, key="epipolar_success")
-    for i, (m, (rate, count)) in enumerate(success_by_bin(records, bin_deg).items()):
+    for m, (rate, count) in success_by_bin(records, bin_deg).items():
         ok = count > 0
-        line, = ax.plot(centres[ok], 100 * rate[ok], "o-", label=f"{m}")
-        ax.plot(centres[ok], 100 * epi[m][0][ok], "--", color=line.get_color(), alpha=0.6,
-                label=f"{m} (GT-correct matches)")
+        (line,) = ax.plot(centres[ok], 100 * rate[ok], "o-", label=f"{m}")
+        ax.plot(
+            centres[ok],
+            100 * epi[m][0][ok],
+            "--",
+            color=line.get_color(),
+            alpha=0.6,
+            label=f"{m} (GT-correct matches)",
+        )
     ax.set_xlabel("ground-truth relative rotation (deg)")
     ax.set_ylabel(f"success (%): rotation error < {success_deg:g} deg")
     ax.set_xlim(0, 180)
@@ -284,15 +367,19 @@ def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str =
     EvalConf ``conf``. Returns the markdown table."""
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "records.csv", records)
-    table = markdown_table(records, conf.bin_deg, conf.auc_thresholds, conf.success_deg,
-                           conf.min_correct)
+    table = markdown_table(
+        records, conf.bin_deg, conf.auc_thresholds, conf.success_deg, conf.min_correct
+    )
     methods = methods_of(records)
     if len(methods) > 1:  # the first method of --features is the baseline
-        table += ("\nPaired with " + methods[0] + " (same pairs; p: exact two-sided)\n\n"
-                  + paired_markdown(records, methods[0], conf.bin_deg))
+        table += (
+            "\nPaired with "
+            + methods[0]
+            + " (same pairs; p: exact two-sided)\n\n"
+            + paired_markdown(records, methods[0], conf.bin_deg)
+        )
     (out / "summary.md").write_text(table)
-    (out / "summary.json").write_text(json.dumps(summary(records, conf.auc_thresholds),
-                                                 indent=1))
+    (out / "summary.json").write_text(json.dumps(summary(records, conf.auc_thresholds), indent=1))
     if plot:
         plot_success(out / "success.png", records, conf.bin_deg, title, conf.success_deg)
     return table

@@ -121,8 +121,10 @@ _SCHEMA = [
         pose_priors(corr_data_id, corr_sensor_id, corr_sensor_type)""",
 ]
 PROVENANCE_TABLE = "rectified_colmap_features"
-_PROVENANCE_SQL = (f"CREATE TABLE IF NOT EXISTS {PROVENANCE_TABLE} ("
-                   "image_id INTEGER PRIMARY KEY NOT NULL, extractor TEXT NOT NULL)")
+_PROVENANCE_SQL = (
+    f"CREATE TABLE IF NOT EXISTS {PROVENANCE_TABLE} ("
+    "image_id INTEGER PRIMARY KEY NOT NULL, extractor TEXT NOT NULL)"
+)
 EXTRACTOR_NAME = "rectified-colmap"
 
 _REQUIRED = {
@@ -198,22 +200,30 @@ class ColmapDatabase:
             logger.info("created COLMAP database %s", self.path)
         try:
             self._con = sqlite3.connect(self.path, isolation_level=None, timeout=60.0)
-            tables = {r[0] for r in self._con.execute(
-                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+            tables = {
+                r[0]
+                for r in self._con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+            }
             if not tables:  # an empty file (e.g. `touch db.db`): initialise it as COLMAP does
                 _init_schema(self._con)
                 logger.info("initialised empty database %s", self.path)
-                tables = {r[0] for r in self._con.execute(
-                    "SELECT name FROM sqlite_master WHERE type = 'table'")}
+                tables = {
+                    r[0]
+                    for r in self._con.execute(
+                        "SELECT name FROM sqlite_master WHERE type = 'table'"
+                    )
+                }
         except sqlite3.DatabaseError as e:
             raise ValueError(f"{self.path}: not a valid SQLite/COLMAP database ({e})") from e
-        self._columns = {t: {r[1] for r in self._con.execute(f"PRAGMA table_info({t})")}
-                         for t in tables}
+        self._columns = {
+            t: {r[1] for r in self._con.execute(f"PRAGMA table_info({t})")} for t in tables
+        }
         for table, cols in _REQUIRED.items():
             missing = cols - self._columns.get(table, set())
             if missing:
-                raise ValueError(f"{self.path}: not a COLMAP database (table {table!r} "
-                                 f"lacks {sorted(missing)})")
+                raise ValueError(
+                    f"{self.path}: not a COLMAP database (table {table!r} lacks {sorted(missing)})"
+                )
         self._has_type = "type" in self._columns["descriptors"]
         self._has_frames = {"rigs", "frames", "frame_data"} <= tables
         self._has_provenance = PROVENANCE_TABLE in tables
@@ -251,34 +261,55 @@ class ColmapDatabase:
         if not camera.verify_params() or not np.isfinite(params).all():
             raise ValueError(f"{self.path}: invalid {camera.model.name} parameters {params}")
         if model > MAX_COLMAP38_MODEL:
-            logger.warning("%s: camera model %s is unknown to COLMAP 3.8", self.path,
-                           camera.model.name)
+            logger.warning(
+                "%s: camera model %s is unknown to COLMAP 3.8", self.path, camera.model.name
+            )
         cur = self._con.execute(
             "INSERT INTO cameras(model, width, height, params, prior_focal_length) "
             "VALUES(?, ?, ?, ?, ?)",
-            (model, int(camera.width), int(camera.height), params.tobytes(),
-             int(bool(prior_focal_length))))
+            (
+                model,
+                int(camera.width),
+                int(camera.height),
+                params.tobytes(),
+                int(bool(prior_focal_length)),
+            ),
+        )
         return int(cur.lastrowid)
 
     def find_camera(self, camera: pycolmap.Camera, prior_focal_length: bool) -> int | None:
         """Id of a camera row identical to ``camera`` (model, size, params, prior), or None:
         lets a resumed single-camera run reuse its camera."""
         params = np.asarray(camera.params, dtype=np.float64).tobytes()
-        row = self._one("SELECT camera_id FROM cameras WHERE model = ? AND width = ? AND "
-                        "height = ? AND params = ? AND prior_focal_length = ? "
-                        "ORDER BY camera_id LIMIT 1",
-                        (int(camera.model.value), int(camera.width), int(camera.height),
-                         params, int(bool(prior_focal_length))))
+        row = self._one(
+            "SELECT camera_id FROM cameras WHERE model = ? AND width = ? AND "
+            "height = ? AND params = ? AND prior_focal_length = ? "
+            "ORDER BY camera_id LIMIT 1",
+            (
+                int(camera.model.value),
+                int(camera.width),
+                int(camera.height),
+                params,
+                int(bool(prior_focal_length)),
+            ),
+        )
         return None if row is None else int(row[0])
 
     def get_camera(self, camera_id: int) -> pycolmap.Camera:
-        row = self._one("SELECT model, width, height, params, prior_focal_length FROM cameras"
-                        " WHERE camera_id = ?", (int(camera_id),))
+        row = self._one(
+            "SELECT model, width, height, params, prior_focal_length FROM cameras"
+            " WHERE camera_id = ?",
+            (int(camera_id),),
+        )
         if row is None:
             raise KeyError(f"{self.path}: no camera with id {camera_id}")
         model, width, height, params, prior = row
-        cam = pycolmap.Camera(model=pycolmap.CameraModelId(model), width=width, height=height,
-                              params=np.frombuffer(params, dtype=np.float64).copy())
+        cam = pycolmap.Camera(
+            model=pycolmap.CameraModelId(model),
+            width=width,
+            height=height,
+            params=np.frombuffer(params, dtype=np.float64).copy(),
+        )
         cam.camera_id = int(camera_id)
         cam.has_prior_focal_length = bool(prior)
         return cam
@@ -298,8 +329,10 @@ class ColmapDatabase:
             return False
         if self._one("SELECT 1 FROM frames LIMIT 1") is not None:
             return True
-        return (self._one("SELECT 1 FROM images LIMIT 1") is None
-                and self._one("SELECT 1 FROM rigs LIMIT 1") is not None)
+        return (
+            self._one("SELECT 1 FROM images LIMIT 1") is None
+            and self._one("SELECT 1 FROM rigs LIMIT 1") is not None
+        )
 
     def add_image(self, name: str, camera_id: int) -> int:
         """Insert an image (and its rig/frame rows where the database uses them)."""
@@ -308,34 +341,44 @@ class ColmapDatabase:
 
     def _insert_image(self, name: str, camera_id: int) -> int:
         if not name or name.startswith("/") or "\\" in name:
-            raise ValueError(f"{self.path}: image name {name!r} must be a relative path "
-                             "with '/' separators")
+            raise ValueError(
+                f"{self.path}: image name {name!r} must be a relative path with '/' separators"
+            )
         if self._one("SELECT 1 FROM cameras WHERE camera_id = ?", (int(camera_id),)) is None:
             raise KeyError(f"{self.path}: image {name!r}: no camera with id {camera_id}")
         frames = self.uses_frames()
         try:
-            cur = self._con.execute("INSERT INTO images(name, camera_id) VALUES(?, ?)",
-                                    (name, int(camera_id)))
+            cur = self._con.execute(
+                "INSERT INTO images(name, camera_id) VALUES(?, ?)", (name, int(camera_id))
+            )
         except sqlite3.IntegrityError as e:
             raise ValueError(f"{self.path}: cannot add image {name!r} ({e})") from e
         image_id = int(cur.lastrowid)
         if frames:
-            row = self._one("SELECT rig_id FROM rigs WHERE ref_sensor_id = ? AND "
-                            "ref_sensor_type = ?", (int(camera_id), CAMERA_SENSOR))
+            row = self._one(
+                "SELECT rig_id FROM rigs WHERE ref_sensor_id = ? AND ref_sensor_type = ?",
+                (int(camera_id), CAMERA_SENSOR),
+            )
             if row is None:
-                row = self._one("SELECT rig_id FROM rig_sensors WHERE sensor_id = ? AND "
-                                "sensor_type = ?", (int(camera_id), CAMERA_SENSOR))
+                row = self._one(
+                    "SELECT rig_id FROM rig_sensors WHERE sensor_id = ? AND sensor_type = ?",
+                    (int(camera_id), CAMERA_SENSOR),
+                )
             if row is None:
                 rig_id = self._con.execute(
                     "INSERT INTO rigs(ref_sensor_id, ref_sensor_type) VALUES(?, ?)",
-                    (int(camera_id), CAMERA_SENSOR)).lastrowid
+                    (int(camera_id), CAMERA_SENSOR),
+                ).lastrowid
             else:
                 rig_id = row[0]
-            frame_id = self._con.execute("INSERT INTO frames(rig_id) VALUES(?)",
-                                         (rig_id,)).lastrowid
-            self._con.execute("INSERT INTO frame_data(frame_id, data_id, sensor_id, "
-                              "sensor_type) VALUES(?, ?, ?, ?)",
-                              (frame_id, image_id, int(camera_id), CAMERA_SENSOR))
+            frame_id = self._con.execute(
+                "INSERT INTO frames(rig_id) VALUES(?)", (rig_id,)
+            ).lastrowid
+            self._con.execute(
+                "INSERT INTO frame_data(frame_id, data_id, sensor_id, "
+                "sensor_type) VALUES(?, ?, ?, ?)",
+                (frame_id, image_id, int(camera_id), CAMERA_SENSOR),
+            )
         return image_id
 
     def image_names(self) -> dict[int, str]:
@@ -343,12 +386,21 @@ class ColmapDatabase:
 
     # -- features -------------------------------------------------------------------------
     def has_features(self, image_id: int) -> bool:
-        return self._one("SELECT 1 FROM keypoints k JOIN descriptors d USING(image_id) "
-                         "WHERE image_id = ?", (int(image_id),)) is not None
+        return (
+            self._one(
+                "SELECT 1 FROM keypoints k JOIN descriptors d USING(image_id) WHERE image_id = ?",
+                (int(image_id),),
+            )
+            is not None
+        )
 
     def image_ids_with_features(self) -> set[int]:
-        return {r[0] for r in self._con.execute(
-            "SELECT image_id FROM keypoints JOIN descriptors USING(image_id)")}
+        return {
+            r[0]
+            for r in self._con.execute(
+                "SELECT image_id FROM keypoints JOIN descriptors USING(image_id)"
+            )
+        }
 
     def ours(self) -> set[int]:
         """Ids of the images whose current features this tool wrote (provenance table)."""
@@ -363,16 +415,23 @@ class ColmapDatabase:
         for table in ("matches", "two_view_geometries"):
             n = 0
             for k in range(0, len(ids), 500):  # SQLite's variable limit
-                chunk = ids[k:k + 500]
+                chunk = ids[k : k + 500]
                 marks = ",".join("?" * len(chunk))
-                n += self._one(f"SELECT COUNT(*) FROM {table} WHERE pair_id / {MAX_IMAGE_ID} "
-                               f"IN ({marks}) OR pair_id % {MAX_IMAGE_ID} IN ({marks})",
-                               chunk + chunk)[0]
+                n += self._one(
+                    f"SELECT COUNT(*) FROM {table} WHERE pair_id / {MAX_IMAGE_ID} "
+                    f"IN ({marks}) OR pair_id % {MAX_IMAGE_ID} IN ({marks})",
+                    chunk + chunk,
+                )[0]
             counts.append(n)
         return counts[0], counts[1]
 
-    def write_features(self, image_id: int, features: Features, overwrite: bool = False,
-                       extractor: str | None = EXTRACTOR_NAME) -> tuple[int, int]:
+    def write_features(
+        self,
+        image_id: int,
+        features: Features,
+        overwrite: bool = False,
+        extractor: str | None = EXTRACTOR_NAME,
+    ) -> tuple[int, int]:
         """Keypoints (N x 6) and SIFT descriptors (N x 128 uint8) of one image, in one
         transaction. With ``overwrite``, existing features are replaced and the matches and
         two-view geometries of the image (indices into the old keypoints) are deleted.
@@ -381,10 +440,16 @@ class ColmapDatabase:
         with self._transaction():
             return self._insert_features(int(image_id), features, overwrite, extractor)
 
-    def write_image(self, name: str, features: Features, camera: pycolmap.Camera | None = None,
-                    prior_focal_length: bool = False, camera_id: int | None = None,
-                    overwrite: bool = False, extractor: str | None = EXTRACTOR_NAME
-                    ) -> tuple[int, int, tuple[int, int]]:
+    def write_image(
+        self,
+        name: str,
+        features: Features,
+        camera: pycolmap.Camera | None = None,
+        prior_focal_length: bool = False,
+        camera_id: int | None = None,
+        overwrite: bool = False,
+        extractor: str | None = EXTRACTOR_NAME,
+    ) -> tuple[int, int, tuple[int, int]]:
         """One image's camera (inserted when ``camera_id`` is None), row (when the name is
         new) and features, all in ONE transaction: on any error nothing is left behind.
 
@@ -402,69 +467,90 @@ class ColmapDatabase:
             deleted = self._insert_features(image_id, features, overwrite, extractor)
         return image_id, camera_id, deleted
 
-    def _insert_features(self, image_id: int, features: Features, overwrite: bool,
-                         extractor: str | None) -> tuple[int, int]:
+    def _insert_features(
+        self, image_id: int, features: Features, overwrite: bool, extractor: str | None
+    ) -> tuple[int, int]:
         kp = np.ascontiguousarray(features.colmap_keypoints(), dtype=np.float32)
         desc = features.descriptors
         if desc.dtype != np.uint8 or desc.ndim != 2 or desc.shape[1] != 128:
-            raise ValueError(f"{self.path}: image {image_id}: descriptors must be uint8 "
-                             f"(N, 128), got {desc.dtype} {desc.shape}")
+            raise ValueError(
+                f"{self.path}: image {image_id}: descriptors must be uint8 "
+                f"(N, 128), got {desc.dtype} {desc.shape}"
+            )
         if len(desc) != len(kp):
-            raise ValueError(f"{self.path}: image {image_id}: {len(kp)} keypoints but "
-                             f"{len(desc)} descriptors")
+            raise ValueError(
+                f"{self.path}: image {image_id}: {len(kp)} keypoints but {len(desc)} descriptors"
+            )
         if not np.isfinite(kp).all():
             raise ValueError(f"{self.path}: image {image_id}: non-finite keypoints")
         desc = np.ascontiguousarray(desc)
         if self._one("SELECT 1 FROM images WHERE image_id = ?", (image_id,)) is None:
             raise KeyError(f"{self.path}: no image with id {image_id}")
-        exists = (self._one("SELECT 1 FROM keypoints WHERE image_id = ?", (image_id,))
-                  or self._one("SELECT 1 FROM descriptors WHERE image_id = ?", (image_id,)))
+        exists = self._one("SELECT 1 FROM keypoints WHERE image_id = ?", (image_id,)) or self._one(
+            "SELECT 1 FROM descriptors WHERE image_id = ?", (image_id,)
+        )
         deleted = [0, 0]
         if exists:
             if not overwrite:
-                raise ValueError(f"{self.path}: image {image_id} already has features "
-                                 "(pass overwrite=True to replace them)")
+                raise ValueError(
+                    f"{self.path}: image {image_id} already has features "
+                    "(pass overwrite=True to replace them)"
+                )
             self._con.execute("DELETE FROM keypoints WHERE image_id = ?", (image_id,))
             self._con.execute("DELETE FROM descriptors WHERE image_id = ?", (image_id,))
             for i, table in enumerate(("matches", "two_view_geometries")):
                 deleted[i] = self._con.execute(
                     f"DELETE FROM {table} WHERE pair_id / {MAX_IMAGE_ID} = ? OR "
-                    f"pair_id % {MAX_IMAGE_ID} = ?", (image_id, image_id)).rowcount
+                    f"pair_id % {MAX_IMAGE_ID} = ?",
+                    (image_id, image_id),
+                ).rowcount
             if any(deleted):
-                logger.info("%s: image %d: deleted %d match and %d two-view geometry rows "
-                            "(they indexed the replaced keypoints)", self.path, image_id,
-                            *deleted)
-        self._con.execute("INSERT INTO keypoints(image_id, rows, cols, data) "
-                          "VALUES(?, ?, ?, ?)", (image_id, *kp.shape, kp.tobytes()))
+                logger.info(
+                    "%s: image %d: deleted %d match and %d two-view geometry rows "
+                    "(they indexed the replaced keypoints)",
+                    self.path,
+                    image_id,
+                    *deleted,
+                )
+        self._con.execute(
+            "INSERT INTO keypoints(image_id, rows, cols, data) VALUES(?, ?, ?, ?)",
+            (image_id, *kp.shape, kp.tobytes()),
+        )
         if self._has_type:
-            self._con.execute("INSERT INTO descriptors(image_id, rows, cols, data, type) "
-                              "VALUES(?, ?, ?, ?, ?)",
-                              (image_id, *desc.shape, desc.tobytes(), SIFT_TYPE))
+            self._con.execute(
+                "INSERT INTO descriptors(image_id, rows, cols, data, type) VALUES(?, ?, ?, ?, ?)",
+                (image_id, *desc.shape, desc.tobytes(), SIFT_TYPE),
+            )
         else:
-            self._con.execute("INSERT INTO descriptors(image_id, rows, cols, data) "
-                              "VALUES(?, ?, ?, ?)", (image_id, *desc.shape, desc.tobytes()))
+            self._con.execute(
+                "INSERT INTO descriptors(image_id, rows, cols, data) VALUES(?, ?, ?, ?)",
+                (image_id, *desc.shape, desc.tobytes()),
+            )
         if extractor is not None or self._has_provenance:
             self._con.execute(_PROVENANCE_SQL)
             self._has_provenance = True
-            self._con.execute(f"DELETE FROM {PROVENANCE_TABLE} WHERE image_id = ?",
-                              (image_id,))
+            self._con.execute(f"DELETE FROM {PROVENANCE_TABLE} WHERE image_id = ?", (image_id,))
             if extractor is not None:
-                self._con.execute(f"INSERT INTO {PROVENANCE_TABLE}(image_id, extractor) "
-                                  "VALUES(?, ?)", (image_id, extractor))
+                self._con.execute(
+                    f"INSERT INTO {PROVENANCE_TABLE}(image_id, extractor) VALUES(?, ?)",
+                    (image_id, extractor),
+                )
         return deleted[0], deleted[1]
 
     def read_keypoints(self, image_id: int) -> np.ndarray:
         """(N, cols) float32 keypoints as stored."""
-        row = self._one("SELECT rows, cols, data FROM keypoints WHERE image_id = ?",
-                        (int(image_id),))
+        row = self._one(
+            "SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (int(image_id),)
+        )
         if row is None:
             raise KeyError(f"{self.path}: image {image_id} has no keypoints")
         return np.frombuffer(row[2], dtype=np.float32).reshape(row[0], row[1]).copy()
 
     def read_descriptors(self, image_id: int) -> np.ndarray:
         """(N, 128) uint8 descriptors as stored."""
-        row = self._one("SELECT rows, cols, data FROM descriptors WHERE image_id = ?",
-                        (int(image_id),))
+        row = self._one(
+            "SELECT rows, cols, data FROM descriptors WHERE image_id = ?", (int(image_id),)
+        )
         if row is None:
             raise KeyError(f"{self.path}: image {image_id} has no descriptors")
         return np.frombuffer(row[2], dtype=np.uint8).reshape(row[0], row[1]).copy()
@@ -477,16 +563,19 @@ class ColmapDatabase:
         descriptors are not SIFT (uint8, 128 per keypoint)."""
         kp = self.read_keypoints(image_id).astype(np.float64)
         if self._has_type:
-            (kind,) = self._one("SELECT type FROM descriptors WHERE image_id = ?",
-                                (int(image_id),))
+            (kind,) = self._one("SELECT type FROM descriptors WHERE image_id = ?", (int(image_id),))
             if kind != SIFT_TYPE:
-                raise ValueError(f"{self.path}: image {image_id}: descriptors of type {kind} "
-                                 "are not SIFT")
-        row = self._one("SELECT rows, cols, length(data) FROM descriptors WHERE image_id = ?",
-                        (int(image_id),))
+                raise ValueError(
+                    f"{self.path}: image {image_id}: descriptors of type {kind} are not SIFT"
+                )
+        row = self._one(
+            "SELECT rows, cols, length(data) FROM descriptors WHERE image_id = ?", (int(image_id),)
+        )
         if row[1] != 128 or row[2] != row[0] * 128 or row[0] != len(kp):
-            raise ValueError(f"{self.path}: image {image_id}: {row[0]}x{row[1]} descriptors "
-                             f"({row[2]} bytes) for {len(kp)} keypoints are not COLMAP SIFT")
+            raise ValueError(
+                f"{self.path}: image {image_id}: {row[0]}x{row[1]} descriptors "
+                f"({row[2]} bytes) for {len(kp)} keypoints are not COLMAP SIFT"
+            )
         desc = self.read_descriptors(image_id)
         n, cols = kp.shape
         if cols == 6:

@@ -82,14 +82,14 @@ def rootsift_bytes(unit: np.ndarray, iterations: int = 3) -> np.ndarray:
     return np.clip(np.rint(u * norm), 0, 255).astype(np.uint8)
 
 
-def feature_arrays(features: Features, image_size: tuple[int, int], as_half: bool = True
-                   ) -> dict[str, np.ndarray]:
+def feature_arrays(
+    features: Features, image_size: tuple[int, int], as_half: bool = True
+) -> dict[str, np.ndarray]:
     """The datasets of one image's group (see the module docstring)."""
     n = len(features)
     desc = np.asarray(features.descriptors)
     if desc.dtype != np.uint8 or desc.shape != (n, 128):
-        raise ValueError(f"descriptors must be uint8 ({n}, 128), got {desc.dtype} "
-                         f"{desc.shape}")
+        raise ValueError(f"descriptors must be uint8 ({n}, 128), got {desc.dtype} {desc.shape}")
     if np.asarray(features.keypoints).shape != (n, 2):
         raise ValueError(f"keypoints must be ({n}, 2), got {features.keypoints.shape}")
     w, h = (int(v) for v in image_size)
@@ -101,7 +101,8 @@ def feature_arrays(features: Features, image_size: tuple[int, int], as_half: boo
     return {
         "keypoints": kp,
         "descriptors": np.ascontiguousarray(
-            rootsift_unit(desc).T.astype(np.float16 if as_half else np.float32)),
+            rootsift_unit(desc).T.astype(np.float16 if as_half else np.float32)
+        ),
         "scores": np.zeros(n, np.float32),
         "image_size": np.array([w, h], np.int64),
         "scales": features.scales.astype(np.float32),
@@ -111,8 +112,7 @@ def feature_arrays(features: Features, image_size: tuple[int, int], as_half: boo
 
 def _check_name(name: str) -> str:
     parts = name.split("/")
-    if not name or name.startswith("/") or "\\" in name or any(
-            p in ("", ".", "..") for p in parts):
+    if not name or name.startswith("/") or "\\" in name or any(p in ("", ".", "..") for p in parts):
         raise ValueError(f"image name {name!r} must be a relative path with '/' separators")
     return name
 
@@ -155,8 +155,7 @@ def _fsync_dir(path: Path) -> None:
         pass
 
 
-def _write_group(group: h5py.Group, arrays: dict[str, np.ndarray], extractor: str | None
-                 ) -> None:
+def _write_group(group: h5py.Group, arrays: dict[str, np.ndarray], extractor: str | None) -> None:
     for key, value in arrays.items():
         group.create_dataset(key, data=value)
     group["keypoints"].attrs["uncertainty"] = 1.0
@@ -232,8 +231,9 @@ class HlocFeatureWriter:
             raise
         self._stage = staging_dir(self.path)
         self._staged: set[str] = set()
-        self._dirs = {"/".join(n.split("/")[:i]) for n in self._names
-                      for i in range(1, n.count("/") + 1)}
+        self._dirs = {
+            "/".join(n.split("/")[:i]) for n in self._names for i in range(1, n.count("/") + 1)
+        }
         self._closed = False
 
     def __enter__(self) -> "HlocFeatureWriter":
@@ -252,8 +252,14 @@ class HlocFeatureWriter:
     def names(self) -> list[str]:
         return sorted(self._names | self._staged)
 
-    def write(self, name: str, features: Features, image_size: tuple[int, int],
-              overwrite: bool = False, extractor: str | None = EXTRACTOR_NAME) -> None:
+    def write(
+        self,
+        name: str,
+        features: Features,
+        image_size: tuple[int, int],
+        overwrite: bool = False,
+        extractor: str | None = EXTRACTOR_NAME,
+    ) -> None:
         """Stage one image (``image_size`` = (W, H) of the original image). ``extractor``:
         recorded as the features' origin (None: not ours)."""
         self._check_new(name, overwrite)
@@ -261,8 +267,9 @@ class HlocFeatureWriter:
             arrays = feature_arrays(features, image_size, self.as_half)
         except ValueError as e:
             raise ValueError(f"{self.path}: {name!r}: {e}") from e
-        self._stage_group(name, lambda group: _write_group(group, arrays, extractor),
-                          extractor is not None)
+        self._stage_group(
+            name, lambda group: _write_group(group, arrays, extractor), extractor is not None
+        )
 
     def copy_from(self, source: Path | str, name: str, overwrite: bool = False) -> None:
         """Stage one image's group exactly as it is in another feature file (datasets and
@@ -287,11 +294,14 @@ class HlocFeatureWriter:
         _check_name(name)
         parents = {"/".join(name.split("/")[:i]) for i in range(1, name.count("/") + 1)}
         if name in self._dirs or parents & (self._names | self._staged):
-            raise ValueError(f"{self.path}: image name {name!r} clashes with a folder or an "
-                             "image of the same name in the file")
+            raise ValueError(
+                f"{self.path}: image name {name!r} clashes with a folder or an "
+                "image of the same name in the file"
+            )
         if self.has(name) and not overwrite:
-            raise ValueError(f"{self.path}: {name!r} already has features "
-                             "(pass overwrite=True to replace them)")
+            raise ValueError(
+                f"{self.path}: {name!r} already has features (pass overwrite=True to replace them)"
+            )
 
     def _stage_group(self, name: str, fill, ours: bool) -> None:
         """Write ``fill(group)`` into the image's staging file, atomically."""
@@ -333,6 +343,7 @@ class HlocFeatureWriter:
 
 
 # -- readers -------------------------------------------------------------------------------
+
 
 def list_names(path: Path | str) -> list[str]:
     """Image names in a feature file (merged ones and, if any, staged ones).
@@ -398,14 +409,16 @@ def features_from_arrays(g: dict[str, np.ndarray], where: str = "") -> Features:
     desc = np.asarray(g["descriptors"])
     n = len(kp)
     if desc.ndim != 2 or desc.shape != (128, n):
-        raise ValueError(f"{where}: descriptors {desc.shape} are not 128-dim SIFT for {n} "
-                         "keypoints")
+        raise ValueError(
+            f"{where}: descriptors {desc.shape} are not 128-dim SIFT for {n} keypoints"
+        )
     scales = np.asarray(g.get("scales", np.ones(n)), dtype=np.float64).reshape(-1)
     oris = np.deg2rad(np.asarray(g.get("oris", np.zeros(n)), dtype=np.float64).reshape(-1))
     if len(scales) != n or len(oris) != n:
         raise ValueError(f"{where}: scales/oris do not match {n} keypoints")
-    return Features(kp, similarity_frames(scales, oris), rootsift_bytes(desc.T),
-                    np.full(n, -1, np.int32))
+    return Features(
+        kp, similarity_frames(scales, oris), rootsift_bytes(desc.T), np.full(n, -1, np.int32)
+    )
 
 
 def validate(path: Path | str, names: list[str] | None = None) -> int:
@@ -422,22 +435,26 @@ def validate(path: Path | str, names: list[str] | None = None) -> int:
             g = f[name]
             where = f"{path}: {name!r}"
             if set(g.keys()) != set(DATASETS):
-                raise ValueError(f"{where}: datasets {sorted(g.keys())}, expected "
-                                 f"{sorted(DATASETS)}")
+                raise ValueError(
+                    f"{where}: datasets {sorted(g.keys())}, expected {sorted(DATASETS)}"
+                )
             kp, desc = g["keypoints"], g["descriptors"]
             n = kp.shape[0]
             if kp.shape != (n, 2) or kp.dtype != np.float32:
                 raise ValueError(f"{where}: keypoints {kp.shape} {kp.dtype}")
             if desc.ndim != 2 or desc.shape[1] != n or desc.dtype.kind != "f":
-                raise ValueError(f"{where}: descriptors {desc.shape} {desc.dtype}, "
-                                 f"expected (D, {n}) float")
+                raise ValueError(
+                    f"{where}: descriptors {desc.shape} {desc.dtype}, expected (D, {n}) float"
+                )
             norms = np.linalg.norm(desc[()].astype(np.float32), axis=0)
             if n and not np.all((np.abs(norms - 1) < 2e-3) | (norms == 0)):
                 raise ValueError(f"{where}: descriptors are not unit-norm")
             size = g["image_size"]
             if size.shape != (2,) or size.dtype.kind not in "iu" or (size[()] <= 0).any():
-                raise ValueError(f"{where}: image_size {size[()]} ({size.dtype}) must be "
-                                 "positive integers [W, H]")
+                raise ValueError(
+                    f"{where}: image_size {size[()]} ({size.dtype}) must be "
+                    "positive integers [W, H]"
+                )
             for key in ("scores", "scales", "oris"):
                 if g[key].shape != (n,) or g[key].dtype.kind != "f":
                     raise ValueError(f"{where}: {key} {g[key].shape} {g[key].dtype}")

@@ -40,19 +40,25 @@ def list_images(image_dir: Path, image_list: Path | list[str] | None = None) -> 
             try:
                 text = Path(image_list).read_text().splitlines()
             except (OSError, UnicodeDecodeError) as e:
-                raise FileNotFoundError(f"{image_list}: cannot read the image list "
-                                        f"({type(e).__name__}: {e})") from None
+                raise FileNotFoundError(
+                    f"{image_list}: cannot read the image list ({type(e).__name__}: {e})"
+                ) from None
             names = [ln.strip() for ln in text if ln.strip() and not ln.startswith("#")]
         else:
             names = list(image_list)
         unique = list(dict.fromkeys(names))
         if len(unique) < len(names):
-            logger.warning("%s: %d duplicate name(s) in the image list, each processed once",
-                           image_list if isinstance(image_list, (str, Path)) else "image list",
-                           len(names) - len(unique))
+            logger.warning(
+                "%s: %d duplicate name(s) in the image list, each processed once",
+                image_list if isinstance(image_list, (str, Path)) else "image list",
+                len(names) - len(unique),
+            )
         return unique
-    names = [p.relative_to(image_dir).as_posix() for p in image_dir.rglob("*")
-             if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()]
+    names = [
+        p.relative_to(image_dir).as_posix()
+        for p in image_dir.rglob("*")
+        if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file()
+    ]
     return sorted(names)
 
 
@@ -70,8 +76,7 @@ def decode_image(path: Path) -> tuple[np.ndarray, list[str]]:
         raise ImageError("cannot decode image (corrupt or unsupported format)")
     warnings = []
     if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
-        warnings.append("truncated JPEG (no end-of-image marker): the missing part decodes "
-                        "as grey")
+        warnings.append("truncated JPEG (no end-of-image marker): the missing part decodes as grey")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), warnings
 
 

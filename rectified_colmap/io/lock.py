@@ -50,11 +50,12 @@ def check_writable(path: Path | str, what: str = "output") -> None:
     while not existing.exists():
         existing = existing.parent
     if not existing.is_dir():
-        raise NotADirectoryError(f"{path}: cannot create the {what}: {existing} is not a "
-                                 "folder")
+        raise NotADirectoryError(f"{path}: cannot create the {what}: {existing} is not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
-        raise PermissionError(f"{path}: cannot write the {what}: folder {existing} is not "
-                              "writable (journal and staging files are made beside it)")
+        raise PermissionError(
+            f"{path}: cannot write the {what}: folder {existing} is not "
+            "writable (journal and staging files are made beside it)"
+        )
     if path.exists():
         if path.is_dir():
             raise IsADirectoryError(f"{path}: the {what} path is a folder")
@@ -105,8 +106,11 @@ class OutputLock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 if not told:
-                    logger.warning("%s is being written by process %s; waiting for it to "
-                                   "finish", self.path, _read_pid(fd) or "?")
+                    logger.warning(
+                        "%s is being written by process %s; waiting for it to finish",
+                        self.path,
+                        _read_pid(fd) or "?",
+                    )
                     told = True
                 os.close(fd)
                 time.sleep(self.poll_seconds)

@@ -45,20 +45,25 @@ class MergeSummary:
     """Image rows of the inputs that have no features (skipped)."""
 
     def report(self, target: Path) -> str:
-        return (f"{target}: {len(self.added)} image(s) added, {len(self.already)} already "
-                f"there, {len(self.without_features)} input image(s) without features "
-                "skipped")
+        return (
+            f"{target}: {len(self.added)} image(s) added, {len(self.already)} already "
+            f"there, {len(self.without_features)} input image(s) without features "
+            "skipped"
+        )
 
 
 def _conflict_error(conflicts: dict[str, list[str]]) -> ValueError:
     names = sorted(conflicts)
     shown = "; ".join(f"{n!r} in {' and '.join(conflicts[n])}" for n in names[:3])
-    return ValueError(f"{len(names)} image(s) have different features under the same name "
-                      f"({shown}{'; ...' if len(names) > 3 else ''}); nothing was merged")
+    return ValueError(
+        f"{len(names)} image(s) have different features under the same name "
+        f"({shown}{'; ...' if len(names) > 3 else ''}); nothing was merged"
+    )
 
 
-def merge_databases(target: Path | str, inputs: list[Path | str], single_camera: bool = False
-                    ) -> MergeSummary:
+def merge_databases(
+    target: Path | str, inputs: list[Path | str], single_camera: bool = False
+) -> MergeSummary:
     """Add the images of the input databases to ``target`` (created when missing)."""
     target = Path(target)
     summary = MergeSummary()
@@ -70,8 +75,10 @@ def merge_databases(target: Path | str, inputs: list[Path | str], single_camera:
         for src in srcs:
             n_matches, n_geoms = src.count_matches(src.image_names())
             if n_matches or n_geoms:
-                raise ValueError(f"{src.path}: holds {n_matches} match and {n_geoms} two-view "
-                                 "geometry rows; merge shard outputs before matching them")
+                raise ValueError(
+                    f"{src.path}: holds {n_matches} match and {n_geoms} two-view "
+                    "geometry rows; merge shard outputs before matching them"
+                )
         # name -> (input, image_id, camera_id); conflicts: name -> paths
         entries: dict[str, tuple[ColmapDatabase, int, int]] = {}
         conflicts: dict[str, list[str]] = {}
@@ -108,16 +115,25 @@ def merge_databases(target: Path | str, inputs: list[Path | str], single_camera:
                 continue
             src, image_id, cam_id = entries[name]
             camera = src.get_camera(cam_id)
-            value = (int(camera.model.value), camera.width, camera.height,
-                     np.asarray(camera.params, np.float64).tobytes(),
-                     camera.has_prior_focal_length)
+            value = (
+                int(camera.model.value),
+                camera.width,
+                camera.height,
+                np.asarray(camera.params, np.float64).tobytes(),
+                camera.has_prior_focal_length,
+            )
             target_cam = by_source.get((id(src), cam_id))
             if target_cam is None and single_camera:
                 target_cam = by_value.get(value)
             extractor = EXTRACTOR_NAME if image_id in src.ours() else None
             _, target_cam, _ = out.write_image(
-                name, src.read_features(image_id), camera, camera.has_prior_focal_length,
-                target_cam, extractor=extractor)
+                name,
+                src.read_features(image_id),
+                camera,
+                camera.has_prior_focal_length,
+                target_cam,
+                extractor=extractor,
+            )
             by_source[(id(src), cam_id)] = target_cam
             if single_camera:
                 by_value.setdefault(value, target_cam)
@@ -126,8 +142,9 @@ def merge_databases(target: Path | str, inputs: list[Path | str], single_camera:
 
 
 def _same_db_features(a: ColmapDatabase, ia: int, b: ColmapDatabase, ib: int) -> bool:
-    return (np.array_equal(a.read_keypoints(ia), b.read_keypoints(ib))
-            and np.array_equal(a.read_descriptors(ia), b.read_descriptors(ib)))
+    return np.array_equal(a.read_keypoints(ia), b.read_keypoints(ib)) and np.array_equal(
+        a.read_descriptors(ia), b.read_descriptors(ib)
+    )
 
 
 def merge_feature_files(target: Path | str, inputs: list[Path | str]) -> MergeSummary:

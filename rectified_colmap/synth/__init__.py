@@ -38,23 +38,43 @@ import numpy as np
 from .render import RenderResult, cast, raycast, render
 from .scene import KIND_NAMES, Scene, corner, rubble, square, street
 from .textures import make_texture
-from .views import (angle_between_views, backproject, camera_center, covisible,
-                    covisible_fraction, look_at, pinhole_camera, pitched, random_camera,
-                    random_view,
-                    relative_pose, relative_T, reproject, view_orbit, view_pair,
-                    viewing_direction)
+from .views import (
+    angle_between_views,
+    backproject,
+    camera_center,
+    covisible,
+    covisible_fraction,
+    look_at,
+    pinhole_camera,
+    pitched,
+    random_camera,
+    random_view,
+    relative_pose,
+    relative_T,
+    reproject,
+    view_orbit,
+    view_pair,
+    viewing_direction,
+)
 
 
-def random_scene(rng: np.random.Generator, texture_dir=None, probs=(0.7, 0.15, 0.15),
-                 texel: float = 0.025) -> Scene:
+def random_scene(
+    rng: np.random.Generator, texture_dir=None, probs=(0.7, 0.15, 0.15), texel: float = 0.025
+) -> Scene:
     """street / corner / square with probabilities ``probs``."""
     k = int(rng.choice(3, p=np.asarray(probs) / np.sum(probs)))
     return (street, corner, square)[k](rng, texture_dir=texture_dir, texel=texel)
 
 
-def random_sample(rng: np.random.Generator, width: int = 256, height: int = 192,
-                  texture_dir=None, supersample: int = 2, focal_range=(0.6, 1.4),
-                  noise: float = 0.0) -> RenderResult:
+def random_sample(
+    rng: np.random.Generator,
+    width: int = 256,
+    height: int = 192,
+    texture_dir=None,
+    supersample: int = 2,
+    focal_range=(0.6, 1.4),
+    noise: float = 0.0,
+) -> RenderResult:
     """A training view: random scene, random camera (focal ``focal_range`` x width), random
     view (see :func:`random_view`). The camera and pose are in the result. Textures have
     about the resolution of a pixel 10 m away (10 / width metres per texel, 2.5-6 cm)."""
@@ -64,8 +84,34 @@ def random_sample(rng: np.random.Generator, width: int = 256, height: int = 192,
     return render(scene, camera, pose, supersample, noise, int(rng.integers(1 << 31)))
 
 
-__all__ = ["RenderResult", "Scene", "KIND_NAMES", "angle_between_views", "backproject",
-           "camera_center", "cast", "corner", "covisible", "covisible_fraction", "look_at",
-           "make_texture", "pinhole_camera", "pitched", "random_camera", "random_sample", "random_scene",
-           "random_view", "raycast", "relative_T", "relative_pose", "render", "reproject",
-           "rubble", "square", "street", "view_orbit", "view_pair", "viewing_direction"]
+__all__ = [
+    "RenderResult",
+    "Scene",
+    "KIND_NAMES",
+    "angle_between_views",
+    "backproject",
+    "camera_center",
+    "cast",
+    "corner",
+    "covisible",
+    "covisible_fraction",
+    "look_at",
+    "make_texture",
+    "pinhole_camera",
+    "pitched",
+    "random_camera",
+    "random_sample",
+    "random_scene",
+    "random_view",
+    "raycast",
+    "relative_T",
+    "relative_pose",
+    "render",
+    "reproject",
+    "rubble",
+    "square",
+    "street",
+    "view_orbit",
+    "view_pair",
+    "viewing_direction",
+]

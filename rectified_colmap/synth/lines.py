@@ -48,9 +48,16 @@ def street_segments(rng, clutter=0.3, n=150):
         z = rng.uniform(0.5, 12, n // 3)
         wdt, hgt = rng.uniform(0.6, 1.5, (2, n // 3))
         x = np.full(n // 3, side)
-        for (dy0, dz0, dy1, dz1) in ((0, 0, 1, 0), (0, 1, 1, 1), (0, 0, 0, 1), (1, 0, 1, 1)):
-            segs.append(np.stack([np.stack([x, y + dy0 * wdt, z + dz0 * hgt], 1),
-                                  np.stack([x, y + dy1 * wdt, z + dz1 * hgt], 1)], 1))
+        for dy0, dz0, dy1, dz1 in ((0, 0, 1, 0), (0, 1, 1, 1), (0, 0, 0, 1), (1, 0, 1, 1)):
+            segs.append(
+                np.stack(
+                    [
+                        np.stack([x, y + dy0 * wdt, z + dz0 * hgt], 1),
+                        np.stack([x, y + dy1 * wdt, z + dz1 * hgt], 1),
+                    ],
+                    1,
+                )
+            )
     gx, gy = rng.uniform(-5, 5, n // 3), rng.uniform(2, 30, n // 3)
     L = rng.uniform(0.5, 2, n // 3)
     segs.append(np.stack([np.stack([gx, gy, 0 * gx], 1), np.stack([gx + L, gy, 0 * gx], 1)], 1))
@@ -78,8 +85,12 @@ def project_segments(camera, R, t, S, clip=0.3):
     xy = np.stack([rays_to_image(camera, p0), rays_to_image(camera, p1)], 1)
     ok = np.isfinite(xy).all((1, 2))
     xy = xy[ok]
-    inside = ((xy[..., 0] > 0) & (xy[..., 0] < camera.width) & (xy[..., 1] > 0)
-              & (xy[..., 1] < camera.height)).all(1)
+    inside = (
+        (xy[..., 0] > 0)
+        & (xy[..., 0] < camera.width)
+        & (xy[..., 1] > 0)
+        & (xy[..., 1] < camera.height)
+    ).all(1)
     return xy[inside]
 
 
@@ -88,7 +99,7 @@ def render_street(camera, R, rng, clutter=0.3, noise=6.0):
     t = -R @ np.array([0.0, 0.0, 1.6])
     xy = project_segments(camera, R, t, street_segments(rng, clutter))
     img = np.full((camera.height, camera.width), 170, np.uint8)
-    for p, q in (np.round(to_opencv_points(xy) * 16).astype(int)):
+    for p, q in np.round(to_opencv_points(xy) * 16).astype(int):
         cv2.line(img, tuple(map(int, p)), tuple(map(int, q)), 40, 2, cv2.LINE_AA, shift=4)
     img = img.astype(np.float32) + rng.normal(scale=noise, size=img.shape)
     return np.clip(img, 0, 255).astype(np.uint8)

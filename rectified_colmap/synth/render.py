@@ -33,9 +33,9 @@ _CHUNK = 4096  # cv2.remap needs dimensions < 32767
 
 @dataclass
 class RenderResult:
-    image: np.ndarray     # (H, W, 3) uint8 RGB
-    depth: np.ndarray     # (H, W) float32 z-depth, NaN = sky
-    normals: np.ndarray   # (H, W, 3) float32 camera frame, unit, toward the camera; NaN sky
+    image: np.ndarray  # (H, W, 3) uint8 RGB
+    depth: np.ndarray  # (H, W) float32 z-depth, NaN = sky
+    normals: np.ndarray  # (H, W, 3) float32 camera frame, unit, toward the camera; NaN sky
     plane_id: np.ndarray  # (H, W) int32 quad index, -1 = sky
     camera: pycolmap.Camera
     cam_from_world: pycolmap.Rigid3d
@@ -52,8 +52,9 @@ class RenderResult:
 def pinhole_K(camera: pycolmap.Camera) -> np.ndarray:
     name = model_name(camera)
     if name not in ("PINHOLE", "SIMPLE_PINHOLE"):
-        raise ValueError(f"synth.render: camera model {name} is not supported "
-                         "(PINHOLE or SIMPLE_PINHOLE only)")
+        raise ValueError(
+            f"synth.render: camera model {name} is not supported (PINHOLE or SIMPLE_PINHOLE only)"
+        )
     return np.asarray(camera.calibration_matrix(), np.float64)
 
 
@@ -110,8 +111,16 @@ def _bboxes(scene: Scene, R, t, K, W, H) -> np.ndarray:
     return out
 
 
-def cast(scene: Scene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
-         uv: bool = False, dtype=np.float64):
+def cast(
+    scene: Scene,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    width: int,
+    height: int,
+    uv: bool = False,
+    dtype=np.float64,
+):
     """Primary rays through the pixel centres of a width x height grid with intrinsics K.
 
     Returns depth (H, W) (inf: no hit), quad id (H, W) int32 (-1), and with ``uv`` the quad
@@ -130,8 +139,9 @@ def cast(scene: Scene, K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, 
         V = np.zeros((height, width), dtype)
         D = np.ones((height, width), dtype)
     boxes = _bboxes(scene, R, t, K, width, height)
-    todo = np.flatnonzero((boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
-                          & (np.abs(dn) > 1e-9))
+    todo = np.flatnonzero(
+        (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2]) & (np.abs(dn) > 1e-9)
+    )
     su, sv = scene.size[:, 0].astype(dtype), scene.size[:, 1].astype(dtype)
     with np.errstate(divide="ignore", invalid="ignore"):
         for q in todo:
@@ -182,8 +192,9 @@ def _texture_colours(scene: Scene, q: np.ndarray, u, v, depth, den, f: float) ->
     s = u / texel + scene.tex_offset[q, 0].astype(np.float32)
     r = v / texel + scene.tex_offset[q, 1].astype(np.float32)
     cos = np.clip(np.abs(den), np.float32(1e-3), np.float32(1.0))
-    level = np.log2(np.maximum(depth / (np.float32(f) * texel), np.float32(1e-6))) \
-        - np.float32(0.75) * np.log2(cos)
+    level = np.log2(np.maximum(depth / (np.float32(f) * texel), np.float32(1e-6))) - np.float32(
+        0.75
+    ) * np.log2(cos)
     # group pixels by (quad, level): two remaps (levels l0, l0 + 1) per group
     quads = np.unique(q)
     nlev = np.zeros(len(scene), np.float32)
@@ -209,7 +220,7 @@ def _texture_colours(scene: Scene, q: np.ndarray, u, v, depth, den, f: float) ->
             if k >= len(pyr):
                 continue
             img = pyr[k]
-            sc = np.float32(2.0 ** -k)
+            sc = np.float32(2.0**-k)
             c = _remap(img, to_opencv_points(s[a:b] * sc), to_opencv_points(r[a:b] * sc))
             wk = (1 - w1[a:b]) if k == lv else w1[a:b]
             acc = c * wk[:, None] if acc is None else acc + c * wk[:, None]
@@ -234,8 +245,14 @@ def _sky(scene: Scene, R: np.ndarray, K: np.ndarray, W: int, H: int) -> np.ndarr
     return np.where(below, horizon * 0.8, sky).astype(np.float32)
 
 
-def render(scene: Scene, camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d,
-           supersample: int = 2, noise: float = 0.0, seed: int = 0) -> RenderResult:
+def render(
+    scene: Scene,
+    camera: pycolmap.Camera,
+    cam_from_world: pycolmap.Rigid3d,
+    supersample: int = 2,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> RenderResult:
     """Render a view (see the module docstring). ``noise``: std of additive Gaussian
     pixel noise (grey levels, 0-255), from ``seed``."""
     if supersample < 1:
@@ -261,8 +278,9 @@ def render(scene: Scene, camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid
     Ks[:2] *= ss
     Ws, Hs = W * ss, H * ss
     if ss == 1:
-        d, q, U, V, D = (a.astype(np.float32) if a.dtype == np.float64 else a
-                         for a in (depth, qid, U, V, D))
+        d, q, U, V, D = (
+            a.astype(np.float32) if a.dtype == np.float64 else a for a in (depth, qid, U, V, D)
+        )
     else:
         d, q, U, V, D = cast(scene, Ks, R, t, Ws, Hs, uv=True, dtype=np.float32)
     hs = q >= 0
@@ -282,8 +300,7 @@ def render(scene: Scene, camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid
     return RenderResult(image, depth32, normals, qid.astype(np.int32), camera, cam_from_world)
 
 
-def raycast(scene: Scene, origins: np.ndarray, dirs: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray]:
+def raycast(scene: Scene, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hits of world rays (P, 3) origins and directions: ray parameter t (P,)
     (inf: none; in units of |dir|) and quad id (P,) (-1)."""
     origins = np.asarray(origins, float).reshape(-1, 3)
@@ -292,14 +309,13 @@ def raycast(scene: Scene, origins: np.ndarray, dirs: np.ndarray
     best = np.full(len(dirs), np.inf)
     ids = np.full(len(dirs), -1, np.int32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        den = dirs @ nrm.T                                     # (P, N)
-        rel = scene.origin[None] - origins[:, None]            # (P, N, 3)
+        den = dirs @ nrm.T  # (P, N)
+        rel = scene.origin[None] - origins[:, None]  # (P, N, 3)
         tt = np.einsum("pnk,nk->pn", rel, nrm) / den
         hit = origins[:, None] + tt[..., None] * dirs[:, None] - scene.origin[None]
         u = np.einsum("pnk,nk->pn", hit, scene.eu)
         v = np.einsum("pnk,nk->pn", hit, scene.ev)
-        ok = (tt > 1e-6) & (u >= 0) & (u <= scene.size[:, 0]) & (v >= 0) \
-            & (v <= scene.size[:, 1])
+        ok = (tt > 1e-6) & (u >= 0) & (u <= scene.size[:, 0]) & (v >= 0) & (v <= scene.size[:, 1])
     tt = np.where(ok, tt, np.inf)
     if tt.shape[1]:
         ids = np.argmin(tt, 1).astype(np.int32)

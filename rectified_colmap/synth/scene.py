@@ -44,21 +44,21 @@ class TextureSpec:
 
 @dataclass
 class Scene:
-    origin: np.ndarray      # (N, 3)
-    eu: np.ndarray          # (N, 3) unit
-    ev: np.ndarray          # (N, 3) unit, orthogonal to eu
-    size: np.ndarray        # (N, 2) metres along eu, ev
-    normal: np.ndarray      # (N, 3) outward unit normal
-    kind: np.ndarray        # (N,) int
-    tex: np.ndarray         # (N,) int index into ``textures``
-    texel: np.ndarray       # (N,) metres per texel
+    origin: np.ndarray  # (N, 3)
+    eu: np.ndarray  # (N, 3) unit
+    ev: np.ndarray  # (N, 3) unit, orthogonal to eu
+    size: np.ndarray  # (N, 2) metres along eu, ev
+    normal: np.ndarray  # (N, 3) outward unit normal
+    kind: np.ndarray  # (N,) int
+    tex: np.ndarray  # (N,) int index into ``textures``
+    texel: np.ndarray  # (N,) metres per texel
     tex_offset: np.ndarray  # (N, 2) texels
-    albedo: np.ndarray      # (N,) brightness factor (shading and per-quad variation)
+    albedo: np.ndarray  # (N,) brightness factor (shading and per-quad variation)
     textures: list[TextureSpec]
-    sky: np.ndarray         # (2, 3) horizon and zenith colours, [0, 1]
-    free_lo: np.ndarray     # (3,) box where cameras may stand...
+    sky: np.ndarray  # (2, 3) horizon and zenith colours, [0, 1]
+    free_lo: np.ndarray  # (3,) box where cameras may stand...
     free_hi: np.ndarray
-    blockers: np.ndarray    # (M, 4, 3) ...outside these oriented boxes (corner, 3 edges)
+    blockers: np.ndarray  # (M, 4, 3) ...outside these oriented boxes (corner, 3 edges)
     seed: int
     name: str = "scene"
     photos: tuple = ()
@@ -89,11 +89,15 @@ class Scene:
             photo = self.photos[spec.photo] if spec.photo >= 0 else None
             img = tx.make_texture(spec.kind, spec.seed, spec.height, spec.width, spec.ppm, photo)
             levels = [img]
-            while min(levels[-1].shape[:2]) >= 4 and levels[-1].shape[0] % 2 == 0 \
-                    and levels[-1].shape[1] % 2 == 0:
+            while (
+                min(levels[-1].shape[:2]) >= 4
+                and levels[-1].shape[0] % 2 == 0
+                and levels[-1].shape[1] % 2 == 0
+            ):
                 h, w = levels[-1].shape[:2]
-                levels.append(cv2.resize(levels[-1], (w // 2, h // 2),
-                                         interpolation=cv2.INTER_AREA))
+                levels.append(
+                    cv2.resize(levels[-1], (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+                )
             self._pyramids[i] = levels
         return self._pyramids[i]
 
@@ -116,9 +120,14 @@ class Scene:
         box = np.all((points >= self.free_lo) & (points <= self.free_hi), axis=1)
         return box & ~self.inside_blocker(points, margin)
 
-    def sample_points(self, rng: np.random.Generator, n: int, kinds=None,
-                      min_area: float = 0.0, border: float = 0.5
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def sample_points(
+        self,
+        rng: np.random.Generator,
+        n: int,
+        kinds=None,
+        min_area: float = 0.0,
+        border: float = 0.5,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``n`` random points on quads of the given kinds (area-weighted), at least
         ``border`` metres from the quad edges where possible. Returns (points, quad ids)."""
         ok = np.ones(len(self), bool) if kinds is None else np.isin(self.kind, list(kinds))
@@ -135,20 +144,46 @@ class Scene:
 
 # -- construction ----------------------------------------------------------------------------
 
+
 class _Builder:
     """Accumulates quads and textures; one texture per quad unless shared."""
 
-    def __init__(self, rng: np.random.Generator, max_tex: int = 1024, texel: float = 0.025,
-                 photos: tuple = (), photo_prob: float = 0.0):
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        max_tex: int = 1024,
+        texel: float = 0.025,
+        photos: tuple = (),
+        photo_prob: float = 0.0,
+    ):
         self.rng, self.max_tex, self.base_texel = rng, max_tex, texel
-        self.q: dict[str, list] = {k: [] for k in ("origin", "eu", "ev", "size", "normal", "kind",
-                                                   "tex", "texel", "tex_offset", "albedo")}
+        self.q: dict[str, list] = {
+            k: []
+            for k in (
+                "origin",
+                "eu",
+                "ev",
+                "size",
+                "normal",
+                "kind",
+                "tex",
+                "texel",
+                "tex_offset",
+                "albedo",
+            )
+        }
         self.textures: list[TextureSpec] = []
         self.blockers: list[np.ndarray] = []
         self.photos, self.photo_prob = photos, photo_prob
 
-    def texture(self, kind: str, width_m: float, height_m: float, texel: float | None = None,
-                max_tex: int | None = None) -> tuple[int, float]:
+    def texture(
+        self,
+        kind: str,
+        width_m: float,
+        height_m: float,
+        texel: float | None = None,
+        max_tex: int | None = None,
+    ) -> tuple[int, float]:
         """A new texture covering width_m x height_m; returns (index, texel size)."""
         texel = texel or self.base_texel
         cap = max_tex or self.max_tex
@@ -158,12 +193,22 @@ class _Builder:
         photo = -1
         if kind == "facade" and self.photos and self.rng.random() < self.photo_prob:
             photo = int(self.rng.integers(len(self.photos)))
-        self.textures.append(TextureSpec(kind, int(self.rng.integers(1 << 31)), h, w,
-                                         1.0 / texel, photo))
+        self.textures.append(
+            TextureSpec(kind, int(self.rng.integers(1 << 31)), h, w, 1.0 / texel, photo)
+        )
         return len(self.textures) - 1, texel
 
-    def quad(self, origin, u_vec, v_vec, normal, kind: int, tex: tuple[int, float] | str,
-             albedo: float | None = None, tex_offset=(0.0, 0.0)) -> int:
+    def quad(
+        self,
+        origin,
+        u_vec,
+        v_vec,
+        normal,
+        kind: int,
+        tex: tuple[int, float] | str,
+        albedo: float | None = None,
+        tex_offset=(0.0, 0.0),
+    ) -> int:
         origin, u_vec, v_vec = (np.asarray(x, float) for x in (origin, u_vec, v_vec))
         su, sv = np.linalg.norm(u_vec), np.linalg.norm(v_vec)
         if su < 1e-6 or sv < 1e-6:
@@ -184,8 +229,16 @@ class _Builder:
         q["albedo"].append(self.rng.uniform(0.85, 1.1) if albedo is None else albedo)
         return len(q["origin"]) - 1
 
-    def box(self, corner, e1, e2, height: float, kinds=(WALL, WALL, WALL, WALL, ROOF),
-            textures=("plaster",) * 4 + ("roof",), blocker: bool = True) -> list[int]:
+    def box(
+        self,
+        corner,
+        e1,
+        e2,
+        height: float,
+        kinds=(WALL, WALL, WALL, WALL, ROOF),
+        textures=("plaster",) * 4 + ("roof",),
+        blocker: bool = True,
+    ) -> list[int]:
         """A box on its base (corner + s e1 + t e2, horizontal e1, e2), up to ``height``:
         four vertical walls and a top (no bottom). Walls are textured upright (row 0 at
         the top, columns left to right seen from outside)."""
@@ -212,9 +265,14 @@ class _Builder:
         ys = np.linspace(y0, y1, max(1, int(np.ceil((y1 - y0) / tile))) + 1)
         for i in range(len(xs) - 1):
             for j in range(len(ys) - 1):
-                self.quad([xs[i], ys[j], 0.0], [xs[i + 1] - xs[i], 0, 0], [0, ys[j + 1] - ys[j], 0],
-                          UP, GROUND, self.texture(kind, xs[i + 1] - xs[i], ys[j + 1] - ys[j],
-                                                   texel, 512))
+                self.quad(
+                    [xs[i], ys[j], 0.0],
+                    [xs[i + 1] - xs[i], 0, 0],
+                    [0, ys[j + 1] - ys[j], 0],
+                    UP,
+                    GROUND,
+                    self.texture(kind, xs[i + 1] - xs[i], ys[j + 1] - ys[j], texel, 512),
+                )
 
     def finish(self, name: str, seed: int, free_lo, free_hi, meta=None) -> Scene:
         q = {k: np.asarray(v, float) for k, v in self.q.items()}
@@ -225,23 +283,45 @@ class _Builder:
         shade = ambient + (1 - ambient) * np.clip(q["normal"] @ sun, 0, 1)
         zenith = rng.uniform(0.35, 0.8) * np.array([0.6, 0.75, 1.0]) * rng.uniform(0.9, 1.1, 3)
         horizon = np.clip(zenith + rng.uniform(0.15, 0.4), 0, 1)
-        return Scene(origin=q["origin"], eu=q["eu"], ev=q["ev"], size=q["size"],
-                     normal=q["normal"], kind=q["kind"].astype(np.int32),
-                     tex=q["tex"].astype(np.int32), texel=q["texel"], tex_offset=q["tex_offset"],
-                     albedo=(q["albedo"] * shade).astype(np.float32),
-                     textures=self.textures, sky=np.stack([horizon, zenith]).astype(np.float32),
-                     free_lo=np.asarray(free_lo, float), free_hi=np.asarray(free_hi, float),
-                     blockers=np.asarray(self.blockers, float).reshape(-1, 4, 3), seed=seed,
-                     name=name, photos=self.photos, meta=meta or {})
+        return Scene(
+            origin=q["origin"],
+            eu=q["eu"],
+            ev=q["ev"],
+            size=q["size"],
+            normal=q["normal"],
+            kind=q["kind"].astype(np.int32),
+            tex=q["tex"].astype(np.int32),
+            texel=q["texel"],
+            tex_offset=q["tex_offset"],
+            albedo=(q["albedo"] * shade).astype(np.float32),
+            textures=self.textures,
+            sky=np.stack([horizon, zenith]).astype(np.float32),
+            free_lo=np.asarray(free_lo, float),
+            free_hi=np.asarray(free_hi, float),
+            blockers=np.asarray(self.blockers, float).reshape(-1, 4, 3),
+            seed=seed,
+            name=name,
+            photos=self.photos,
+            meta=meta or {},
+        )
 
 
 def _photos(texture_dir) -> tuple:
     return tx.load_photos(str(texture_dir)) if texture_dir is not None else ()
 
 
-def _facade_row(b: _Builder, rng, start, along, inward, length: float,
-                setback_prob: float = 0.4, gap_prob: float = 0.1, relief_prob: float = 0.5,
-                height=(6.0, 25.0)) -> None:
+def _facade_row(
+    b: _Builder,
+    rng,
+    start,
+    along,
+    inward,
+    length: float,
+    setback_prob: float = 0.4,
+    gap_prob: float = 0.1,
+    relief_prob: float = 0.5,
+    height=(6.0, 25.0),
+) -> None:
     """Buildings along ``along`` from ``start`` over ``length`` metres, fronts facing
     ``inward`` (horizontal unit vectors), with setbacks, gaps, balconies and relief."""
     start, along, inward = (np.asarray(x, float) for x in (start, along, inward))
@@ -255,9 +335,14 @@ def _facade_row(b: _Builder, rng, start, along, inward, length: float,
         depth = rng.uniform(8.0, 14.0)
         hgt = rng.uniform(*height)
         front0 = start + along * s - inward * setback
-        ids = b.box(front0 - inward * depth, along * w, inward * depth, hgt,
-                    kinds=(WALL, FACADE, WALL, WALL, ROOF),
-                    textures=("plaster", "facade", "plaster", "plaster", "roof"))
+        ids = b.box(
+            front0 - inward * depth,
+            along * w,
+            inward * depth,
+            hgt,
+            kinds=(WALL, FACADE, WALL, WALL, ROOF),
+            textures=("plaster", "facade", "plaster", "plaster", "roof"),
+        )
         # the front (edge along +along at the inward side) is wall index 1 or 2 depending
         # on the box orientation: relabel by normal
         for i in ids[:4]:
@@ -278,8 +363,14 @@ def _facade_row(b: _Builder, rng, start, along, inward, length: float,
                 d = rng.uniform(0.3, 1.3)
                 bh = rng.uniform(0.25, 1.1)
                 corner = front0 + along * a0 + UP * z0
-                b.box(corner, along * bw, inward * d, bh, kinds=(RELIEF,) * 5,
-                      textures=("plaster", "stone", "plaster", "stone", "plaster"))
+                b.box(
+                    corner,
+                    along * bw,
+                    inward * d,
+                    bh,
+                    kinds=(RELIEF,) * 5,
+                    textures=("plaster", "stone", "plaster", "stone", "plaster"),
+                )
         s += w
 
 
@@ -294,9 +385,14 @@ def _clutter(b: _Builder, rng, lo, hi, n: int) -> None:
         b.box(c - (e1 + e2) / 2, e1, e2, H, kinds=(CLUTTER,) * 5, textures=("clutter",) * 5)
 
 
-def street(rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5,
-           length: float | None = None, two_sided: bool | None = None,
-           texel: float = 0.025) -> Scene:
+def street(
+    rng: np.random.Generator,
+    texture_dir=None,
+    photo_prob: float = 0.5,
+    length: float | None = None,
+    two_sided: bool | None = None,
+    texel: float = 0.025,
+) -> Scene:
     """A street canyon along +y: ground (road + sidewalks, tiles), facades on one or both
     sides facing each other (setbacks, gaps, balconies), clutter boxes, sky behind."""
     seed = int(rng.integers(1 << 31))
@@ -308,22 +404,39 @@ def street(rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5,
     far = 60.0 if not two else 8.0  # the open side: ground far toward the horizon
     b.ground(-w / 2 + sw, w / 2 - sw, -10, L + 10, "road", tile=rng.uniform(8, 14))
     b.ground(-w / 2 - 6, -w / 2 + sw, -10, L + 10, "paving", tile=10.0)
-    b.ground(w / 2 - sw, w / 2 + far, -10, L + 10, "paving" if two else "cobbles",
-             tile=10.0 if two else 15.0)
+    b.ground(
+        w / 2 - sw,
+        w / 2 + far,
+        -10,
+        L + 10,
+        "paving" if two else "cobbles",
+        tile=10.0 if two else 15.0,
+    )
     _facade_row(b, rng, [-w / 2, L, 0], [0, -1, 0], [1, 0, 0], L)
     if two:
         _facade_row(b, rng, [w / 2, 0, 0], [0, 1, 0], [-1, 0, 0], L)
     if rng.random() < 0.5:  # a building closing the street
-        b.box([-w / 2 - 6, L + 10, 0], [w + 12, 0, 0], [0, 10, 0], rng.uniform(8, 25),
-              kinds=(FACADE, WALL, WALL, WALL, ROOF),
-              textures=("facade", "plaster", "plaster", "plaster", "roof"))
+        b.box(
+            [-w / 2 - 6, L + 10, 0],
+            [w + 12, 0, 0],
+            [0, 10, 0],
+            rng.uniform(8, 25),
+            kinds=(FACADE, WALL, WALL, WALL, ROOF),
+            textures=("facade", "plaster", "plaster", "plaster", "roof"),
+        )
     _clutter(b, rng, [-w / 2 + 0.5, 2], [w / 2 - 0.5, L - 2], int(rng.integers(2, 9)))
-    return b.finish("street", seed, [-w / 2 + 0.8, 0.0, 1.2], [w / 2 - 0.8, L, 10.0],
-                    {"width": w, "length": L, "two_sided": two, "sidewalk": sw})
+    return b.finish(
+        "street",
+        seed,
+        [-w / 2 + 0.8, 0.0, 1.2],
+        [w / 2 - 0.8, L, 10.0],
+        {"width": w, "length": L, "two_sided": two, "sidewalk": sw},
+    )
 
 
-def corner(rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5,
-           texel: float = 0.025) -> Scene:
+def corner(
+    rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5, texel: float = 0.025
+) -> Scene:
     """Two orthogonal rows of facades (along +x at y = 0 facing +y, along +y at x = 0
     facing +x) and the ground in front of them."""
     seed = int(rng.integers(1 << 31))
@@ -336,8 +449,9 @@ def corner(rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5,
     return b.finish("corner", seed, [2.0, 2.0, 1.2], [L, L, 10.0], {"length": L})
 
 
-def square(rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5,
-           texel: float = 0.025) -> Scene:
+def square(
+    rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5, texel: float = 0.025
+) -> Scene:
     """A rectangular square closed by facades on all four sides (facing inward)."""
     seed = int(rng.integers(1 << 31))
     b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
@@ -348,12 +462,14 @@ def square(rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5,
     _facade_row(b, rng, [W, D, 0], [-1, 0, 0], [0, -1, 0], W, setback_prob=0.2)
     _facade_row(b, rng, [0, D, 0], [0, -1, 0], [1, 0, 0], D, setback_prob=0.2)
     _clutter(b, rng, [3, 3], [W - 3, D - 3], int(rng.integers(2, 8)))
-    return b.finish("square", seed, [1.5, 1.5, 1.2], [W - 1.5, D - 1.5, 10.0],
-                    {"width": W, "depth": D})
+    return b.finish(
+        "square", seed, [1.5, 1.5, 1.2], [W - 1.5, D - 1.5, 10.0], {"width": W, "depth": D}
+    )
 
 
-def rubble(rng: np.random.Generator, num: int = 900, radius: float = 6.0,
-           size=(0.25, 0.9)) -> Scene:
+def rubble(
+    rng: np.random.Generator, num: int = 900, radius: float = 6.0, size=(0.25, 0.9)
+) -> Scene:
     """A heap of ``num`` small randomly oriented textured quads (no dominant planes, no
     ground) in a ball of ``radius`` metres around (0, 0, radius); cameras stand outside."""
     seed = int(rng.integers(1 << 31))
@@ -367,9 +483,17 @@ def rubble(rng: np.random.Generator, num: int = 900, radius: float = 6.0,
         su, sv = rng.uniform(*size, 2)
         t = shared[int(rng.integers(len(shared)))]
         off = rng.uniform(0, 400, 2)
-        b.quad(p - R[:, 0] * su / 2 - R[:, 1] * sv / 2, R[:, 0] * su, R[:, 1] * sv, R[:, 2],
-               RUBBLE, t, tex_offset=off)
-    b.blockers.append(np.stack([c - radius, [2 * radius, 0, 0], [0, 2 * radius, 0],
-                                [0, 0, 2 * radius]]))
+        b.quad(
+            p - R[:, 0] * su / 2 - R[:, 1] * sv / 2,
+            R[:, 0] * su,
+            R[:, 1] * sv,
+            R[:, 2],
+            RUBBLE,
+            t,
+            tex_offset=off,
+        )
+    b.blockers.append(
+        np.stack([c - radius, [2 * radius, 0, 0], [0, 2 * radius, 0], [0, 0, 2 * radius]])
+    )
     r = 2.0 * radius
     return b.finish("rubble", seed, [-r, -r, 0.5], [r, r, 2 * radius + 4], {"radius": radius})

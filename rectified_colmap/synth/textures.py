@@ -22,26 +22,40 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-_FONTS = [cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_COMPLEX,
-          cv2.FONT_HERSHEY_TRIPLEX, cv2.FONT_HERSHEY_PLAIN]
+_FONTS = [
+    cv2.FONT_HERSHEY_SIMPLEX,
+    cv2.FONT_HERSHEY_DUPLEX,
+    cv2.FONT_HERSHEY_COMPLEX,
+    cv2.FONT_HERSHEY_TRIPLEX,
+    cv2.FONT_HERSHEY_PLAIN,
+]
 _CHARS = string.ascii_uppercase + string.digits
 
 
 # -- building blocks -----------------------------------------------------------------------
 
+
 def hash_uniform(a: np.ndarray, b: np.ndarray, seed: int) -> np.ndarray:
     """Deterministic pseudo-random floats in [0, 1) from two integer arrays (broadcast)."""
-    x = (np.asarray(a, np.int64).astype(np.uint64) * np.uint64(0x9E3779B1)
-         ^ np.asarray(b, np.int64).astype(np.uint64) * np.uint64(0x85EBCA77)
-         ^ np.uint64((seed * 0xC2B2AE3D) & 0xFFFFFFFF))
+    x = (
+        np.asarray(a, np.int64).astype(np.uint64) * np.uint64(0x9E3779B1)
+        ^ np.asarray(b, np.int64).astype(np.uint64) * np.uint64(0x85EBCA77)
+        ^ np.uint64((seed * 0xC2B2AE3D) & 0xFFFFFFFF)
+    )
     x = (x ^ (x >> np.uint64(15))) * np.uint64(0x2C1B3C6D)
     x = (x ^ (x >> np.uint64(12))) * np.uint64(0x297A2D39)
     x = x ^ (x >> np.uint64(15))
-    return ((x & np.uint64(0xFFFFFF)).astype(np.float32) / np.float32(0x1000000))
+    return (x & np.uint64(0xFFFFFF)).astype(np.float32) / np.float32(0x1000000)
 
 
-def value_noise(rng: np.random.Generator, h: int, w: int, cell: float, octaves: int = 4,
-                persistence: float = 0.55) -> np.ndarray:
+def value_noise(
+    rng: np.random.Generator,
+    h: int,
+    w: int,
+    cell: float,
+    octaves: int = 4,
+    persistence: float = 0.55,
+) -> np.ndarray:
     """Multi-octave value noise (h, w) float32 in [0, 1]; ``cell``: largest feature (px).
 
     Built coarse to fine: a random grid of ``cell``-sized cells, upsampled 2x (bicubic)
@@ -59,8 +73,11 @@ def value_noise(rng: np.random.Generator, h: int, w: int, cell: float, octaves: 
         noise += np.float32(amp) * rng.random((gh, gw), dtype=np.float32)
     # the grid spans (gw - 2) cells of the finest octave over w pixels, +2 cells of margin
     fine = cell / 2 ** (octaves - 1)
-    big = cv2.resize(noise, (int(np.ceil(gw * fine)), int(np.ceil(gh * fine))),
-                     interpolation=cv2.INTER_CUBIC if fine > 1 else cv2.INTER_AREA)
+    big = cv2.resize(
+        noise,
+        (int(np.ceil(gw * fine)), int(np.ceil(gh * fine))),
+        interpolation=cv2.INTER_CUBIC if fine > 1 else cv2.INTER_AREA,
+    )
     out = big[:h, :w]
     lo, hi = np.percentile(out[::4, ::4], [1, 99])
     return np.clip((out - lo) / max(hi - lo, 1e-6), 0, 1)
@@ -111,8 +128,16 @@ def draw_text(img: np.ndarray, rng, x0, y0, x1, y1, colour=None) -> None:
     if x1 - x0 < 4 or y1 - y0 < 4:
         return
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)  # cv2 5 draws text on 8-bit images only
-    cv2.putText(mask, txt, (int(0.05 * bw), int(0.5 * bh + 0.5 * scale * tht)), font, scale,
-                255, th, cv2.LINE_AA)
+    cv2.putText(
+        mask,
+        txt,
+        (int(0.05 * bw), int(0.5 * bh + 0.5 * scale * tht)),
+        font,
+        scale,
+        255,
+        th,
+        cv2.LINE_AA,
+    )
     m = (mask.astype(np.float32) / 255.0)[..., None]
     img[y0:y1, x0:x1] = img[y0:y1, x0:x1] * (1 - m) + col * m
 
@@ -132,8 +157,7 @@ def posters(img: np.ndarray, rng, ppm, y_lo, y_hi, density=0.15) -> None:
             pw, ph = rng.uniform(0.4, 1.2) * ppm, rng.uniform(0.5, 1.5) * ppm
             x0, y0 = int(cx - pw / 2), int(cy - ph / 2)
             x1, y1 = int(cx + pw / 2), int(cy + ph / 2)
-            cv2.rectangle(img, (x0, y0), (x1, y1), tuple(map(float, _colour(rng, 0.3, 1, 0.8))),
-                          -1)
+            cv2.rectangle(img, (x0, y0), (x1, y1), tuple(map(float, _colour(rng, 0.3, 1, 0.8))), -1)
             for _ in range(int(rng.integers(1, 4))):
                 c = (int(rng.uniform(x0, x1)), int(rng.uniform(y0, y1)))
                 r = int(rng.uniform(0.05, 0.3) * min(pw, ph)) + 1
@@ -144,19 +168,34 @@ def posters(img: np.ndarray, rng, ppm, y_lo, y_hi, density=0.15) -> None:
         elif kind < 0.8:  # graffiti strokes
             pts = np.cumsum(rng.normal(0, 0.25 * ppm, (int(rng.integers(3, 9)), 2)), 0)
             pts = (pts + [cx, cy]).astype(np.int32)
-            cv2.polylines(img, [pts], False, tuple(map(float, _colour(rng, 0, 1, 1))),
-                          max(1, int(rng.uniform(0.02, 0.08) * ppm)), cv2.LINE_AA)
+            cv2.polylines(
+                img,
+                [pts],
+                False,
+                tuple(map(float, _colour(rng, 0, 1, 1))),
+                max(1, int(rng.uniform(0.02, 0.08) * ppm)),
+                cv2.LINE_AA,
+            )
         else:  # blob
             ax = (int(rng.uniform(0.1, 0.6) * ppm) + 1, int(rng.uniform(0.1, 0.5) * ppm) + 1)
-            cv2.ellipse(img, (int(cx), int(cy)), ax, rng.uniform(0, 180), 0, 360,
-                        tuple(map(float, _colour(rng, 0, 1, 1))), -1, cv2.LINE_AA)
+            cv2.ellipse(
+                img,
+                (int(cx), int(cy)),
+                ax,
+                rng.uniform(0, 180),
+                0,
+                360,
+                tuple(map(float, _colour(rng, 0, 1, 1))),
+                -1,
+                cv2.LINE_AA,
+            )
 
 
 def decorate(img: np.ndarray, rng, ppm, per_m2: float = 0.25) -> None:
     """Distinctive irregular marks all over a wall, in place: repaired patches (random
     polygons), plaques with text, vents, pipes and graffiti; about ``per_m2`` per m^2."""
     h, w = img.shape[:2]
-    n = int(per_m2 * h * w / ppm ** 2 * rng.uniform(0.6, 1.4)) + 1
+    n = int(per_m2 * h * w / ppm**2 * rng.uniform(0.6, 1.4)) + 1
     for _ in range(min(n, 400)):
         cx, cy = rng.uniform(0, w), rng.uniform(0, h)
         k = rng.random()
@@ -171,8 +210,13 @@ def decorate(img: np.ndarray, rng, ppm, per_m2: float = 0.25) -> None:
         elif k < 0.65:  # plaque / small sign with text
             pw, ph = rng.uniform(0.2, 0.8) * ppm, rng.uniform(0.1, 0.4) * ppm
             x0, y0 = int(cx), int(cy)
-            cv2.rectangle(img, (x0, y0), (int(x0 + pw), int(y0 + ph)),
-                          tuple(map(float, _colour(rng, 0.1, 0.95, 0.6))), -1)
+            cv2.rectangle(
+                img,
+                (x0, y0),
+                (int(x0 + pw), int(y0 + ph)),
+                tuple(map(float, _colour(rng, 0.1, 0.95, 0.6))),
+                -1,
+            )
             draw_text(img, rng, x0, y0, int(x0 + pw), int(y0 + ph))
         elif k < 0.75:  # vent / AC unit: box with a few slats
             pw, ph = rng.uniform(0.3, 0.9) * ppm, rng.uniform(0.2, 0.6) * ppm
@@ -180,23 +224,41 @@ def decorate(img: np.ndarray, rng, ppm, per_m2: float = 0.25) -> None:
             c = _colour(rng, 0.5, 0.95, 0.1)
             cv2.rectangle(img, (x0, y0), (int(x0 + pw), int(y0 + ph)), tuple(map(float, c)), -1)
             for yy in np.linspace(y0 + ph * 0.2, y0 + ph * 0.8, int(rng.integers(2, 5))):
-                cv2.line(img, (x0 + 2, int(yy)), (int(x0 + pw) - 2, int(yy)),
-                         tuple(map(float, c * 0.6)), 1)
+                cv2.line(
+                    img,
+                    (x0 + 2, int(yy)),
+                    (int(x0 + pw) - 2, int(yy)),
+                    tuple(map(float, c * 0.6)),
+                    1,
+                )
         elif k < 0.85:  # pipe / cable
             L = rng.uniform(0.5, 4.0) * ppm
             a = rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.05)
             p1 = (int(cx), int(cy))
             p2 = (int(cx + L * np.cos(a)), int(cy + L * np.sin(a)))
-            cv2.line(img, p1, p2, tuple(map(float, _colour(rng, 0.1, 0.8, 0.3))),
-                     max(1, int(rng.uniform(0.02, 0.1) * ppm)), cv2.LINE_AA)
+            cv2.line(
+                img,
+                p1,
+                p2,
+                tuple(map(float, _colour(rng, 0.1, 0.8, 0.3))),
+                max(1, int(rng.uniform(0.02, 0.1) * ppm)),
+                cv2.LINE_AA,
+            )
         else:  # graffiti tag / stroke
             pts = np.cumsum(rng.normal(0, 0.15 * ppm, (int(rng.integers(3, 8)), 2)), 0)
             pts = (pts + [cx, cy]).astype(np.int32)
-            cv2.polylines(img, [pts], False, tuple(map(float, _colour(rng, 0, 1, 1))),
-                          max(1, int(rng.uniform(0.02, 0.05) * ppm)), cv2.LINE_AA)
+            cv2.polylines(
+                img,
+                [pts],
+                False,
+                tuple(map(float, _colour(rng, 0, 1, 1))),
+                max(1, int(rng.uniform(0.02, 0.05) * ppm)),
+                cv2.LINE_AA,
+            )
 
 
 # -- wall materials ------------------------------------------------------------------------
+
 
 def plaster(rng, h, w, ppm) -> np.ndarray:
     img = np.broadcast_to(_colour(rng, 0.35, 0.9, 0.25), (h, w, 3)) * _grain(rng, h, w, ppm, 0.2)
@@ -276,8 +338,13 @@ def asphalt(rng, h, w, ppm, markings: bool = False) -> np.ndarray:
     for _ in range(int(rng.integers(3, 10))):  # patches
         x0, y0 = rng.uniform(0, w), rng.uniform(0, h)
         pw, ph = rng.uniform(0.3, 3) * ppm, rng.uniform(0.3, 3) * ppm
-        cv2.rectangle(img, (int(x0), int(y0)), (int(x0 + pw), int(y0 + ph)),
-                      tuple(map(float, img[int(y0), int(x0)] * rng.uniform(0.7, 1.3))), -1)
+        cv2.rectangle(
+            img,
+            (int(x0), int(y0)),
+            (int(x0 + pw), int(y0 + ph)),
+            tuple(map(float, img[int(y0), int(x0)] * rng.uniform(0.7, 1.3))),
+            -1,
+        )
     for _ in range(int(rng.integers(2, 8))):  # cracks
         pts = np.cumsum(rng.normal(0, 0.3 * ppm, (int(rng.integers(4, 12)), 2)), 0)
         pts = (pts + [rng.uniform(0, w), rng.uniform(0, h)]).astype(np.int32)
@@ -287,11 +354,19 @@ def asphalt(rng, h, w, ppm, markings: bool = False) -> np.ndarray:
             x0, y0 = rng.uniform(0, w), rng.uniform(0, h)
             if rng.random() < 0.5:
                 pw, ph = rng.uniform(0.1, 0.4) * ppm, rng.uniform(0.8, 3) * ppm
-                cv2.rectangle(img, (int(x0), int(y0)), (int(x0 + pw), int(y0 + ph)),
-                              (0.85, 0.85, 0.8), -1)
+                cv2.rectangle(
+                    img, (int(x0), int(y0)), (int(x0 + pw), int(y0 + ph)), (0.85, 0.85, 0.8), -1
+                )
             else:
-                draw_text(img, rng, int(x0), int(y0), int(x0 + 2 * ppm), int(y0 + 0.8 * ppm),
-                          (0.85, 0.85, 0.8))
+                draw_text(
+                    img,
+                    rng,
+                    int(x0),
+                    int(y0),
+                    int(x0 + 2 * ppm),
+                    int(y0 + 0.8 * ppm),
+                    (0.85, 0.85, 0.8),
+                )
         img = img * _grain(rng, h, w, ppm, 0.2, 0.2)
     return np.clip(img, 0, 1)
 
@@ -313,8 +388,9 @@ def paving(rng, h, w, ppm) -> np.ndarray:
 
 
 def roof(rng, h, w, ppm) -> np.ndarray:
-    img = np.broadcast_to(_colour(rng, 0.15, 0.5, 0.3), (h, w, 3)) * _grain(rng, h, w, ppm, 0.4,
-                                                                            0.3)
+    img = np.broadcast_to(_colour(rng, 0.15, 0.5, 0.3), (h, w, 3)) * _grain(
+        rng, h, w, ppm, 0.4, 0.3
+    )
     return _stains(img.astype(np.float32), rng, ppm, 0.4)
 
 
@@ -344,40 +420,70 @@ def facade(rng, h, w, ppm, photo: np.ndarray | None = None) -> np.ndarray:
         y0 = y1 - win_h * rng.uniform(0.97, 1.03)
         if rng.random() < 0.4:  # cornice / floor band
             yb = int(y_ground - f * floor_h)
-            cv2.rectangle(img, (0, yb - max(1, int(0.1 * ppm))), (w, yb),
-                          tuple(map(float, np.clip(frame_col * rng.uniform(0.7, 1.2), 0, 1))),
-                          -1)
+            cv2.rectangle(
+                img,
+                (0, yb - max(1, int(0.1 * ppm))),
+                (w, yb),
+                tuple(map(float, np.clip(frame_col * rng.uniform(0.7, 1.2), 0, 1))),
+                -1,
+            )
         for c in range(n_cols):
             if rng.random() < 0.04:
                 continue  # a missing window
             cx = margin + (c + 0.5) * spacing + rng.normal(0, 0.01 * ppm)
             x0, x1 = int(cx - win_w / 2), int(cx + win_w / 2)
             g = np.clip(glass_base * rng.uniform(0.5, 1.8) + rng.normal(0, 0.04, 3), 0, 1)
-            cv2.rectangle(img, (x0 - frame, int(y0) - frame), (x1 + frame, int(y1) + frame),
-                          tuple(map(float, frame_col)), -1)
+            cv2.rectangle(
+                img,
+                (x0 - frame, int(y0) - frame),
+                (x1 + frame, int(y1) + frame),
+                tuple(map(float, frame_col)),
+                -1,
+            )
             cv2.rectangle(img, (x0, int(y0)), (x1, int(y1)), tuple(map(float, g)), -1)
             cv2.rectangle(glass, (x0, int(y0)), (x1, int(y1)), 1, -1)
             r = rng.random()
             if r < 0.35:  # curtain
                 cw = int(rng.uniform(0.2, 0.6) * (x1 - x0))
-                cv2.rectangle(img, (x0, int(y0)), (x0 + cw, int(y1)),
-                              tuple(map(float, _colour(rng, 0.4, 0.95, 0.4))), -1)
+                cv2.rectangle(
+                    img,
+                    (x0, int(y0)),
+                    (x0 + cw, int(y1)),
+                    tuple(map(float, _colour(rng, 0.4, 0.95, 0.4))),
+                    -1,
+                )
             elif r < 0.55:  # shutters half-closed: horizontal slats
                 yc = int(y0 + rng.uniform(0.2, 0.9) * (y1 - y0))
-                cv2.rectangle(img, (x0, int(y0)), (x1, yc),
-                              tuple(map(float, _colour(rng, 0.2, 0.8, 0.5))), -1)
+                cv2.rectangle(
+                    img, (x0, int(y0)), (x1, yc), tuple(map(float, _colour(rng, 0.2, 0.8, 0.5))), -1
+                )
             elif r < 0.7:  # reflection
                 p1 = (int(rng.uniform(x0, x1)), int(y0))
                 p2 = (int(rng.uniform(x0, x1)), int(y1))
-                cv2.line(img, p1, p2, tuple(map(float, np.clip(g + 0.3, 0, 1))),
-                         max(1, int(0.05 * ppm)), cv2.LINE_AA)
+                cv2.line(
+                    img,
+                    p1,
+                    p2,
+                    tuple(map(float, np.clip(g + 0.3, 0, 1))),
+                    max(1, int(0.05 * ppm)),
+                    cv2.LINE_AA,
+                )
             if rng.random() < 0.6:  # mullion / cross
-                cv2.line(img, (int(cx), int(y0)), (int(cx), int(y1)),
-                         tuple(map(float, frame_col)), max(1, frame // 2))
+                cv2.line(
+                    img,
+                    (int(cx), int(y0)),
+                    (int(cx), int(y1)),
+                    tuple(map(float, frame_col)),
+                    max(1, frame // 2),
+                )
             if rng.random() < 0.3:  # sill
-                cv2.rectangle(img, (x0 - 2 * frame, int(y1) + frame),
-                              (x1 + 2 * frame, int(y1) + 3 * frame),
-                              tuple(map(float, _colour(rng, 0.5, 0.95, 0.1))), -1)
+                cv2.rectangle(
+                    img,
+                    (x0 - 2 * frame, int(y1) + frame),
+                    (x1 + 2 * frame, int(y1) + 3 * frame),
+                    tuple(map(float, _colour(rng, 0.5, 0.95, 0.1))),
+                    -1,
+                )
     # ground floor: shop windows, doors, signs with text
     x = rng.uniform(0, 1) * ppm
     while x < w:
@@ -385,18 +491,30 @@ def facade(rng, h, w, ppm, photo: np.ndarray | None = None) -> np.ndarray:
         if rng.random() < 0.7:
             top = y_ground + rng.uniform(0.5, 1.0) * ppm
             g = np.clip(glass_base * rng.uniform(0.4, 1.6), 0, 1)
-            cv2.rectangle(img, (int(x), int(top)), (int(x + sw), h - int(0.3 * ppm)),
-                          tuple(map(float, g)), -1)
+            cv2.rectangle(
+                img, (int(x), int(top)), (int(x + sw), h - int(0.3 * ppm)), tuple(map(float, g)), -1
+            )
             cv2.rectangle(glass, (int(x), int(top)), (int(x + sw), h - int(0.3 * ppm)), 1, -1)
             for _ in range(int(rng.integers(0, 4))):  # shop display items
                 cx, cy = rng.uniform(x, x + sw), rng.uniform(top, h)
-                cv2.circle(img, (int(cx), int(cy)), int(rng.uniform(0.05, 0.3) * ppm) + 1,
-                           tuple(map(float, _colour(rng, 0, 1, 1))), -1, cv2.LINE_AA)
+                cv2.circle(
+                    img,
+                    (int(cx), int(cy)),
+                    int(rng.uniform(0.05, 0.3) * ppm) + 1,
+                    tuple(map(float, _colour(rng, 0, 1, 1))),
+                    -1,
+                    cv2.LINE_AA,
+                )
             if rng.random() < 0.8:  # sign
                 sy0 = y_ground + 0.05 * ppm
                 sy1 = top - 0.05 * ppm
-                cv2.rectangle(img, (int(x), int(sy0)), (int(x + sw), int(sy1)),
-                              tuple(map(float, _colour(rng, 0.1, 0.9, 0.9))), -1)
+                cv2.rectangle(
+                    img,
+                    (int(x), int(sy0)),
+                    (int(x + sw), int(sy1)),
+                    tuple(map(float, _colour(rng, 0.1, 0.9, 0.9))),
+                    -1,
+                )
                 draw_text(img, rng, int(x), int(sy0), int(x + sw), int(sy1))
         x += sw + rng.uniform(0.3, 2.5) * ppm
     # reflections (sky, opposite buildings) and interiors: multi-scale detail on the glass
@@ -410,8 +528,7 @@ def facade(rng, h, w, ppm, photo: np.ndarray | None = None) -> np.ndarray:
 
 def clutter(rng, h, w, ppm) -> np.ndarray:
     """Kiosks, containers, vans: coloured panels with text, stickers and dirt."""
-    img = np.ascontiguousarray(np.broadcast_to(_colour(rng, 0.2, 0.9, 0.8), (h, w, 3)),
-                               np.float32)
+    img = np.ascontiguousarray(np.broadcast_to(_colour(rng, 0.2, 0.9, 0.8), (h, w, 3)), np.float32)
     img = img * _grain(rng, h, w, ppm, 0.15, 0.5)
     img = np.ascontiguousarray(img, np.float32)
     posters(img, rng, ppm, 0, h, density=rng.uniform(0.3, 1.0))
@@ -423,30 +540,58 @@ def clutter(rng, h, w, ppm) -> np.ndarray:
 
 def rubble(rng, h, w, ppm) -> np.ndarray:
     """Broken concrete, bricks and debris: noise, blobs and strokes of many colours."""
-    img = np.ascontiguousarray(value_noise(rng, h, w, 0.3 * ppm, 6)[..., None]
-                               * _colour(rng, 0.5, 1, 0.3) + 0.1 * _colour(rng), np.float32)
+    img = np.ascontiguousarray(
+        value_noise(rng, h, w, 0.3 * ppm, 6)[..., None] * _colour(rng, 0.5, 1, 0.3)
+        + 0.1 * _colour(rng),
+        np.float32,
+    )
     n = int(h * w / (0.05 * ppm * ppm + 1) * 0.02) + 5
     for _ in range(min(n, 400)):
         c = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
         if rng.random() < 0.6:
             ax = (int(rng.uniform(0.02, 0.15) * ppm) + 1, int(rng.uniform(0.02, 0.1) * ppm) + 1)
-            cv2.ellipse(img, c, ax, rng.uniform(0, 180), 0, 360,
-                        tuple(map(float, _colour(rng, 0, 1, 0.6))), -1, cv2.LINE_AA)
+            cv2.ellipse(
+                img,
+                c,
+                ax,
+                rng.uniform(0, 180),
+                0,
+                360,
+                tuple(map(float, _colour(rng, 0, 1, 0.6))),
+                -1,
+                cv2.LINE_AA,
+            )
         else:
             d = rng.normal(0, 0.1 * ppm, 2)
-            cv2.line(img, c, (int(c[0] + d[0]), int(c[1] + d[1])),
-                     tuple(map(float, _colour(rng, 0, 1, 0.6))), 1, cv2.LINE_AA)
+            cv2.line(
+                img,
+                c,
+                (int(c[0] + d[0]), int(c[1] + d[1])),
+                tuple(map(float, _colour(rng, 0, 1, 0.6))),
+                1,
+                cv2.LINE_AA,
+            )
     return np.clip(img, 0, 1)
 
 
-GENERATORS = {"facade": facade, "plaster": plaster, "bricks": bricks, "stone": stone,
-              "cobbles": cobbles, "asphalt": asphalt, "paving": paving, "roof": roof,
-              "clutter": clutter, "rubble": rubble,
-              "road": functools.partial(asphalt, markings=True)}
+GENERATORS = {
+    "facade": facade,
+    "plaster": plaster,
+    "bricks": bricks,
+    "stone": stone,
+    "cobbles": cobbles,
+    "asphalt": asphalt,
+    "paving": paving,
+    "roof": roof,
+    "clutter": clutter,
+    "rubble": rubble,
+    "road": functools.partial(asphalt, markings=True),
+}
 
 
-def make_texture(kind: str, seed: int, height: int, width: int, ppm: float,
-                 photo: np.ndarray | None = None) -> np.ndarray:
+def make_texture(
+    kind: str, seed: int, height: int, width: int, ppm: float, photo: np.ndarray | None = None
+) -> np.ndarray:
     """A texture (height, width, 3) float32 in [0, 1], deterministic from ``seed``."""
     if kind not in GENERATORS:
         raise ValueError(f"unknown texture kind {kind!r} (known: {sorted(GENERATORS)})")
@@ -457,6 +602,7 @@ def make_texture(kind: str, seed: int, height: int, width: int, ppm: float,
 
 
 # -- photos ----------------------------------------------------------------------------------
+
 
 @functools.lru_cache(maxsize=4)
 def load_photos(folder: str, max_side: int = 1024) -> tuple[np.ndarray, ...]:
@@ -489,6 +635,6 @@ def photo_texture(photo: np.ndarray, rng, h, w) -> np.ndarray:
     s = min(ph / h, pw / w) * rng.uniform(0.7, 1.0)
     ch, cw = max(2, int(h * s)), max(2, int(w * s))
     y0, x0 = int(rng.integers(0, ph - ch + 1)), int(rng.integers(0, pw - cw + 1))
-    crop = photo[y0:y0 + ch, x0:x0 + cw]
+    crop = photo[y0 : y0 + ch, x0 : x0 + cw]
     interp = cv2.INTER_AREA if s > 1 else cv2.INTER_CUBIC
     return np.clip(cv2.resize(crop, (w, h), interpolation=interp), 0, 1).astype(np.float32)

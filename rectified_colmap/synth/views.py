@@ -19,26 +19,45 @@ logger = logging.getLogger(__name__)
 TARGET_KINDS = {"facade": (FACADE, WALL), "ground": (GROUND,), "any": None}
 
 
-def pinhole_camera(width: int, height: int, focal: float | None = None,
-                   cx: float | None = None, cy: float | None = None) -> pycolmap.Camera:
+def pinhole_camera(
+    width: int,
+    height: int,
+    focal: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+) -> pycolmap.Camera:
     """PINHOLE camera; default focal 1.0 x width, principal point at the image centre."""
     f = float(focal if focal is not None else width)
-    return pycolmap.Camera(model="PINHOLE", width=int(width), height=int(height),
-                           params=[f, f, width / 2.0 if cx is None else cx,
-                                   height / 2.0 if cy is None else cy])
+    return pycolmap.Camera(
+        model="PINHOLE",
+        width=int(width),
+        height=int(height),
+        params=[f, f, width / 2.0 if cx is None else cx, height / 2.0 if cy is None else cy],
+    )
 
 
-def random_camera(rng: np.random.Generator, width: int, height: int,
-                  focal_range=(0.6, 1.4), pp_jitter: float = 0.02) -> pycolmap.Camera:
+def random_camera(
+    rng: np.random.Generator,
+    width: int,
+    height: int,
+    focal_range=(0.6, 1.4),
+    pp_jitter: float = 0.02,
+) -> pycolmap.Camera:
     """PINHOLE camera, focal uniform in ``focal_range`` x width, jittered principal point."""
     f = rng.uniform(*focal_range) * width
-    return pinhole_camera(width, height, f, width / 2 + rng.normal(0, pp_jitter * width),
-                          height / 2 + rng.normal(0, pp_jitter * height))
+    return pinhole_camera(
+        width,
+        height,
+        f,
+        width / 2 + rng.normal(0, pp_jitter * width),
+        height / 2 + rng.normal(0, pp_jitter * height),
+    )
 
 
 def rigid(R_cam_from_world: np.ndarray, t: np.ndarray) -> pycolmap.Rigid3d:
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R_cam_from_world, float)),
-                            np.asarray(t, float).reshape(3))
+    return pycolmap.Rigid3d(
+        pycolmap.Rotation3d(np.asarray(R_cam_from_world, float)), np.asarray(t, float).reshape(3)
+    )
 
 
 def look_at(eye, target, up=UP, roll_deg: float = 0.0) -> pycolmap.Rigid3d:
@@ -77,14 +96,15 @@ def visible(scene: Scene, eyes: np.ndarray, point: np.ndarray, tol: float = 0.02
     eyes = np.asarray(eyes, float).reshape(-1, 3)
     out = np.zeros(len(eyes), bool)
     for s in range(0, len(eyes), 256):
-        e = eyes[s:s + 256]
+        e = eyes[s : s + 256]
         t, _ = raycast(scene, e, point - e)
-        out[s:s + 256] = t > 1 - tol
+        out[s : s + 256] = t > 1 - tol
     return out
 
 
-def coarse_render(scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d,
-                  size: int = 48) -> RenderResult:
+def coarse_render(
+    scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d, size: int = 48
+) -> RenderResult:
     """Geometry only (no image) on a grid of max side ``size`` covering the same view."""
     K = pinhole_K(camera)
     s = size / max(camera.width, camera.height)
@@ -100,18 +120,26 @@ def coarse_render(scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d,
     return RenderResult(None, depth, None, q, small, pose)
 
 
-def _coverage(scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d,
-              size: int = 40) -> tuple[float, float]:
+def _coverage(
+    scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d, size: int = 40
+) -> tuple[float, float]:
     """(fraction of pixels hitting a surface, min depth) on a coarse grid."""
     r = coarse_render(scene, camera, pose, size)
     hit = r.plane_id >= 0
     return float(hit.mean()), float(np.nanmin(r.depth)) if hit.any() else np.inf
 
 
-def random_view(scene: Scene, rng: np.random.Generator, camera: pycolmap.Camera | None = None,
-                height_range=(1.2, 10.0), max_roll_deg: float = 10.0,
-                max_pitch_jitter_deg: float = 10.0, min_coverage: float = 0.6,
-                min_depth: float = 1.0, tries: int = 60) -> pycolmap.Rigid3d:
+def random_view(
+    scene: Scene,
+    rng: np.random.Generator,
+    camera: pycolmap.Camera | None = None,
+    height_range=(1.2, 10.0),
+    max_roll_deg: float = 10.0,
+    max_pitch_jitter_deg: float = 10.0,
+    min_coverage: float = 0.6,
+    min_depth: float = 1.0,
+    tries: int = 60,
+) -> pycolmap.Rigid3d:
     """A random pose in the scene's free space looking at a random visible surface point
     (or along a street), pitch jittered, roll up to ``max_roll_deg``; retried until at
     least ``min_coverage`` of the view hits a surface and nothing is nearer than
@@ -132,15 +160,15 @@ def random_view(scene: Scene, rng: np.random.Generator, camera: pycolmap.Camera 
         else:
             pts, _ = scene.sample_points(rng, 16, min_area=min(1.0, scene.area.max()))
             dist = np.linalg.norm(pts - eye, axis=1)
-            cand = [p for p, dd in zip(pts, dist) if 2.0 < dd < 60.0
-                    and visible(scene, eye[None], p)[0]]
+            cand = [
+                p for p, dd in zip(pts, dist) if 2.0 < dd < 60.0 and visible(scene, eye[None], p)[0]
+            ]
             if not cand:
                 continue
             target = cand[0]
         # pitch jitter: move the target vertically by the jitter angle
         dist = np.linalg.norm(target - eye)
-        target = target + UP * dist * np.tan(np.deg2rad(rng.uniform(-1, 1)
-                                                        * max_pitch_jitter_deg))
+        target = target + UP * dist * np.tan(np.deg2rad(rng.uniform(-1, 1) * max_pitch_jitter_deg))
         pose = look_at(eye, target, roll_deg=rng.uniform(-1, 1) * max_roll_deg)
         cov, dmin = _coverage(scene, camera, pose)
         if cov >= min_coverage and dmin >= min_depth:
@@ -153,13 +181,22 @@ def random_view(scene: Scene, rng: np.random.Generator, camera: pycolmap.Camera 
     return best
 
 
-def view_pair(scene: Scene, rng: np.random.Generator, min_angle_deg: float = 50.0,
-              max_angle_deg: float = 90.0, target: str = "facade",
-              dist_range=(4.0, 16.0), height_range=(1.2, 10.0), max_incidence_deg: float = 80.0,
-              jitter_px: float = 0.15, max_scale_ratio: float = 1.5,
-              max_point_height: float = 8.0, min_covisible: float = 0.2,
-              camera: pycolmap.Camera | None = None, tries: int = 60
-              ) -> tuple[pycolmap.Rigid3d, pycolmap.Rigid3d, np.ndarray]:
+def view_pair(
+    scene: Scene,
+    rng: np.random.Generator,
+    min_angle_deg: float = 50.0,
+    max_angle_deg: float = 90.0,
+    target: str = "facade",
+    dist_range=(4.0, 16.0),
+    height_range=(1.2, 10.0),
+    max_incidence_deg: float = 80.0,
+    jitter_px: float = 0.15,
+    max_scale_ratio: float = 1.5,
+    max_point_height: float = 8.0,
+    min_covisible: float = 0.2,
+    camera: pycolmap.Camera | None = None,
+    tries: int = 60,
+) -> tuple[pycolmap.Rigid3d, pycolmap.Rigid3d, np.ndarray]:
     """Two poses looking at one 3D point on a quad of kind ``target`` from the same side
     of its plane, with the angle between the two viewing directions to the point in
     [min_angle_deg, max_angle_deg], both with the point unoccluded and in view (it is
@@ -199,16 +236,22 @@ def view_pair(scene: Scene, rng: np.random.Generator, min_angle_deg: float = 50.
         c = d @ d[i]
         dist = np.linalg.norm(eyes - X, axis=1)
         ratio = dist / dist[i]
-        js = np.flatnonzero((c >= cos_lo) & (c <= cos_hi) & (ratio < max_scale_ratio)
-                            & (ratio > 1 / max_scale_ratio))
+        js = np.flatnonzero(
+            (c >= cos_lo)
+            & (c <= cos_hi)
+            & (ratio < max_scale_ratio)
+            & (ratio > 1 / max_scale_ratio)
+        )
         if len(js) == 0:
             continue
         j = int(rng.choice(js))
         poses = [_aim(e, X, camera, rng, jitter_px) for e in (eyes[i], eyes[j])]
         if min_covisible > 0:
             r0, r1 = (coarse_render(scene, camera, p) for p in poses)
-            if min(covisible_fraction(r0, r1, 0.05), covisible_fraction(r1, r0, 0.05)) \
-                    < min_covisible:
+            if (
+                min(covisible_fraction(r0, r1, 0.05), covisible_fraction(r1, r0, 0.05))
+                < min_covisible
+            ):
                 continue
         return poses[0], poses[1], X
     raise RuntimeError(f"view_pair: no pair found in scene {scene.name} for target {target}")
@@ -226,10 +269,17 @@ def _aim(eye, X, camera, rng, jitter_px, max_roll_deg: float = 5.0) -> pycolmap.
     return look_at(eye, new_target, up=R.T @ np.array([0, -1.0, 0]))
 
 
-def view_orbit(scene: Scene, n: int = 8, rng: np.random.Generator | None = None,
-               step: float = 1.2, height: float = 1.7, yaw_deg=(25.0, 55.0),
-               camera: pycolmap.Camera | None = None, min_depth: float = 2.0,
-               tries: int = 50) -> list[pycolmap.Rigid3d]:
+def view_orbit(
+    scene: Scene,
+    n: int = 8,
+    rng: np.random.Generator | None = None,
+    step: float = 1.2,
+    height: float = 1.7,
+    yaw_deg=(25.0, 55.0),
+    camera: pycolmap.Camera | None = None,
+    min_depth: float = 2.0,
+    tries: int = 50,
+) -> list[pycolmap.Rigid3d]:
     """A walk along a street (or along one side of a corner/square scene): ``n`` poses
     ``step`` metres apart in free space, looking obliquely (``yaw_deg`` off the walking
     direction) at the facades of one side, nothing nearer than ``min_depth``."""
@@ -242,13 +292,16 @@ def view_orbit(scene: Scene, n: int = 8, rng: np.random.Generator | None = None,
             side = rng.choice([-1.0, 1.0]) if scene.meta.get("two_sided", True) else -1.0
             x = -side * w * rng.uniform(0.1, 0.3)
             y0 = rng.uniform(0.1, 0.9) * L - 0.5 * step * (n - 1)
-            start, along, toward = np.array([x, y0, height]), np.array([0, 1.0, 0]), \
-                np.array([side, 0, 0.0])
+            start, along, toward = (
+                np.array([x, y0, height]),
+                np.array([0, 1.0, 0]),
+                np.array([side, 0, 0.0]),
+            )
         else:  # walk parallel to the x = lo side, looking at it
-            start = np.array([lo[0] + rng.uniform(0.4, 0.7) * (hi[0] - lo[0]),
-                              rng.uniform(lo[1], hi[1]), height])
-            along, toward = np.array([0, 1.0, 0]) * rng.choice([-1.0, 1.0]), \
-                np.array([-1.0, 0, 0])
+            start = np.array(
+                [lo[0] + rng.uniform(0.4, 0.7) * (hi[0] - lo[0]), rng.uniform(lo[1], hi[1]), height]
+            )
+            along, toward = np.array([0, 1.0, 0]) * rng.choice([-1.0, 1.0]), np.array([-1.0, 0, 0])
         eyes = start + along * step * np.arange(n)[:, None]
         if not scene.in_free_space(eyes, margin=0.5).all():
             continue
@@ -265,6 +318,7 @@ def view_orbit(scene: Scene, n: int = 8, rng: np.random.Generator | None = None,
 
 
 # -- ground truth ----------------------------------------------------------------------------
+
 
 def relative_pose(pose0: pycolmap.Rigid3d, pose1: pycolmap.Rigid3d) -> pycolmap.Rigid3d:
     """cam1_from_cam0."""
@@ -296,8 +350,9 @@ def backproject(depth: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
     return np.stack([xx, yy, np.ones_like(xx)], -1) * depth[..., None]
 
 
-def reproject(r0: RenderResult, camera1: pycolmap.Camera, pose1: pycolmap.Rigid3d
-              ) -> tuple[np.ndarray, np.ndarray]:
+def reproject(
+    r0: RenderResult, camera1: pycolmap.Camera, pose1: pycolmap.Rigid3d
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of view 0 (with their depths) seen by camera 1: COLMAP pixel coordinates
     (H, W, 2) and z-depth in camera 1 (H, W); NaN where view 0 has no depth."""
     X0 = backproject(r0.depth.astype(np.float64), r0.camera)

@@ -33,17 +33,27 @@ logger = logging.getLogger(__name__)
 _TEXTURE_DIR: str | None = None
 
 
-def synth_sample(seed: int, width: int, height: int, texture_dir: str | Path | None = None,
-                 supersample: int = 2) -> dict:
+def synth_sample(
+    seed: int, width: int, height: int, texture_dir: str | Path | None = None, supersample: int = 2
+) -> dict:
     """One training view from ``rectified_colmap.synth.random_sample`` in the pool format
     (see the module docstring), plus ``R`` (3, 3): cam_from_world rotation (the scenes are
     built on the world axes, so ``R.T``'s rows are the true dominant directions)."""
-    r = synth.random_sample(np.random.default_rng(seed), width, height,
-                            None if texture_dir is None else str(texture_dir), supersample)
+    r = synth.random_sample(
+        np.random.default_rng(seed),
+        width,
+        height,
+        None if texture_dir is None else str(texture_dir),
+        supersample,
+    )
     valid = np.isfinite(r.depth)
-    return {"image": r.image, "depth": np.where(valid, r.depth, 0).astype(np.float32),
-            "normals": np.where(valid[..., None], r.normals, 0).astype(np.float32),
-            "K": pinhole_K(r.camera), "R": r.cam_from_world.rotation.matrix()}
+    return {
+        "image": r.image,
+        "depth": np.where(valid, r.depth, 0).astype(np.float32),
+        "normals": np.where(valid[..., None], r.normals, 0).astype(np.float32),
+        "K": pinhole_K(r.camera),
+        "R": r.cam_from_world.rotation.matrix(),
+    }
 
 
 def _init_worker(texture_dir):
@@ -59,14 +69,21 @@ def _render_one(args) -> str:
         return str(path)
     s = synth_sample(seed, width, height, _TEXTURE_DIR)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, image=s["image"], depth=s["depth"], normals=s["normals"].astype(np.float16),
-             K=s["K"])
+    np.savez(
+        tmp, image=s["image"], depth=s["depth"], normals=s["normals"].astype(np.float16), K=s["K"]
+    )
     tmp.replace(path)
     return str(path)
 
 
-def render_pool(out_dir: str | Path, seeds, width: int = 320, height: int = 240,
-                texture_dir: str | Path | None = None, processes: int = 2) -> list[Path]:
+def render_pool(
+    out_dir: str | Path,
+    seeds,
+    width: int = 320,
+    height: int = 240,
+    texture_dir: str | Path | None = None,
+    processes: int = 2,
+) -> list[Path]:
     """Render (or reuse) one view per seed into ``out_dir/<seed>.npz``; returns the paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -93,8 +110,9 @@ def load_sample(path: str | Path) -> dict:
 
 
 # -- augmentation ------------------------------------------------------------------------
-def random_zoom_crop(s: dict, rng: np.random.Generator, out_h: int, out_w: int,
-                     min_zoom: float = 1.0) -> dict:
+def random_zoom_crop(
+    s: dict, rng: np.random.Generator, out_h: int, out_w: int, min_zoom: float = 1.0
+) -> dict:
     """Crop a random window and resize it to (out_h, out_w); K follows exactly."""
     h, w = s["depth"].shape
     zmax = min(h / out_h, w / out_w)
@@ -105,11 +123,15 @@ def random_zoom_crop(s: dict, rng: np.random.Generator, out_h: int, out_w: int,
     # a maps COLMAP coordinates of the source to the output; cv2 wants OpenCV coordinates
     a_cv = to_opencv_homography(np.vstack([a, [0.0, 0.0, 1.0]]))[:2]
     warp = dict(dsize=(out_w, out_h), borderMode=cv2.BORDER_REPLICATE)
-    out = {"image": cv2.warpAffine(s["image"], a_cv, flags=cv2.INTER_AREA if scale > 1.3
-                                   else cv2.INTER_LINEAR, **warp),
-           "depth": cv2.warpAffine(s["depth"], a_cv, flags=cv2.INTER_NEAREST, **warp),
-           "normals": cv2.warpAffine(s["normals"].astype(np.float32), a_cv,
-                                     flags=cv2.INTER_NEAREST, **warp)}
+    out = {
+        "image": cv2.warpAffine(
+            s["image"], a_cv, flags=cv2.INTER_AREA if scale > 1.3 else cv2.INTER_LINEAR, **warp
+        ),
+        "depth": cv2.warpAffine(s["depth"], a_cv, flags=cv2.INTER_NEAREST, **warp),
+        "normals": cv2.warpAffine(
+            s["normals"].astype(np.float32), a_cv, flags=cv2.INTER_NEAREST, **warp
+        ),
+    }
     K = np.array(s["K"], np.float64).copy()
     K[:2] = np.concatenate([a[:, :2] @ K[:2, :2], (a[:, :2] @ K[:2, 2:] + a[:, 2:])], 1)
     out["K"] = K
@@ -122,8 +144,12 @@ def hflip(s: dict) -> dict:
     n[..., 0] *= -1
     K = s["K"].copy()
     K[0, 2] = w - K[0, 2]
-    return {"image": s["image"][:, ::-1].copy(), "depth": s["depth"][:, ::-1].copy(),
-            "normals": n, "K": K}
+    return {
+        "image": s["image"][:, ::-1].copy(),
+        "depth": s["depth"][:, ::-1].copy(),
+        "normals": n,
+        "K": K,
+    }
 
 
 def photometric(image: np.ndarray, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -154,26 +180,31 @@ def photometric(image: np.ndarray, depth: np.ndarray, rng: np.random.Generator) 
         x = x + rng.normal(0, rng.uniform(0.003, 0.04), x.shape).astype(np.float32)
     out = np.clip(x * 255 + 0.5, 0, 255).astype(np.uint8)
     if rng.random() < 0.5:
-        ok, buf = cv2.imencode(".jpg", out[..., ::-1],
-                               [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(25, 96))])
+        ok, buf = cv2.imencode(
+            ".jpg", out[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(25, 96))]
+        )
         out = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
     return np.ascontiguousarray(out)
 
 
 def normalise(image: np.ndarray) -> np.ndarray:
     """uint8 (H, W, 3) RGB -> float32 (3, H, W) as the network expects."""
-    return (image.astype(np.float32).transpose(2, 0, 1) / 128.0 - 127.0 / 128.0)
+    return image.astype(np.float32).transpose(2, 0, 1) / 128.0 - 127.0 / 128.0
 
 
-def augment(s: dict, rng: np.random.Generator, out_h: int, out_w: int,
-            photometric_aug: bool = True) -> dict:
+def augment(
+    s: dict, rng: np.random.Generator, out_h: int, out_w: int, photometric_aug: bool = True
+) -> dict:
     s = random_zoom_crop(s, rng, out_h, out_w)
     if rng.random() < 0.5:
         s = hflip(s)
     img = photometric(s["image"], s["depth"], rng) if photometric_aug else s["image"]
-    return {"image": normalise(img), "depth": s["depth"][None].astype(np.float32),
-            "normals": np.ascontiguousarray(s["normals"].transpose(2, 0, 1), np.float32),
-            "K": s["K"].astype(np.float32)}
+    return {
+        "image": normalise(img),
+        "depth": s["depth"][None].astype(np.float32),
+        "normals": np.ascontiguousarray(s["normals"].transpose(2, 0, 1), np.float32),
+        "K": s["K"].astype(np.float32),
+    }
 
 
 class PoolDataset:
@@ -182,8 +213,15 @@ class PoolDataset:
     ``__len__`` is ``length`` (items are drawn at random from the pool); the randomness of
     item ``i`` depends only on (seed, epoch, i), so a run is reproducible from its seed."""
 
-    def __init__(self, paths, out_h: int, out_w: int, seed: int = 0, length: int = 10 ** 7,
-                 photometric_aug: bool = True):
+    def __init__(
+        self,
+        paths,
+        out_h: int,
+        out_w: int,
+        seed: int = 0,
+        length: int = 10**7,
+        photometric_aug: bool = True,
+    ):
         import torch  # noqa: F401  (torch tensors returned)
 
         self.samples = [load_sample(p) for p in paths]

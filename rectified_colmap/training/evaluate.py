@@ -65,9 +65,15 @@ def direction_error(dirs: np.ndarray | None, true_axes: np.ndarray) -> float:
     return float(np.degrees(np.arccos(cos)).mean())
 
 
-def evaluate(model: str | Path, num: int = 24, seed: int = 900_000_000, width: int = 384,
-             height: int = 288, texture_dir: str | Path | None = None,
-             threads: int = 2) -> dict:
+def evaluate(
+    model: str | Path,
+    num: int = 24,
+    seed: int = 900_000_000,
+    width: int = 384,
+    height: int = 288,
+    texture_dir: str | Path | None = None,
+    threads: int = 2,
+) -> dict:
     from ..depth.onnx import OnnxDepthSource
 
     src = OnnxDepthSource(model, providers=["CPUExecutionProvider"], num_threads=threads)
@@ -82,15 +88,18 @@ def evaluate(model: str | Path, num: int = 24, seed: int = 900_000_000, width: i
         if pred.shape != (height, width):
             raise ValueError(f"{model}: depth {pred.shape} for a {width}x{height} image")
         row = {}
-        for tag, depth in (("pred", pred), ("gtdepth", np.where(s["depth"] > 0, s["depth"],
-                                                                 np.nan))):
+        for tag, depth in (
+            ("pred", pred),
+            ("gtdepth", np.where(s["depth"] > 0, s["depth"], np.nan)),
+        ):
             n = estimate_normals(backproject(depth, rays), conf)
             has = mask & np.isfinite(n).all(-1)
             err = angle_deg(n[has].astype(np.float64), gt_n[has])
             row[f"normal_err_{tag}"] = float(np.median(err)) if err.size else 90.0
             row[f"coverage_{tag}"] = float(has.sum() / max(mask.sum(), 1))
-            dirs, _ = fit_dominant_directions(n.reshape(-1, 3), PlaneConf(),
-                                              np.random.default_rng(0))
+            dirs, _ = fit_dominant_directions(
+                n.reshape(-1, 3), PlaneConf(), np.random.default_rng(0)
+            )
             # true scene axes (the scene is axis-aligned): world axes in the camera frame
             row[f"dir_err_{tag}"] = direction_error(dirs, s["R"].T)
         rows.append(row)
@@ -132,22 +141,32 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
             n = n[np.isfinite(n).all(1)]
             dirs, _ = fit_dominant_directions(n, conf.planes, np.random.default_rng(0))
             cos = np.abs(n @ axes.T).max(1)
-            rows.append({"image": f"{scene.name}/{image.name}",
-                         "dir_err": direction_error(axes, dirs) if dirs is not None else 90.0,
-                         "agree": float(np.mean(cos > np.cos(np.deg2rad(agree_deg))))
-                         if len(n) else 0.0})
-            logger.info("%s: %s", rows[-1]["image"],
-                        {k: round(v, 3) for k, v in rows[-1].items() if k != "image"})
+            rows.append(
+                {
+                    "image": f"{scene.name}/{image.name}",
+                    "dir_err": direction_error(axes, dirs) if dirs is not None else 90.0,
+                    "agree": float(np.mean(cos > np.cos(np.deg2rad(agree_deg)))) if len(n) else 0.0,
+                }
+            )
+            logger.info(
+                "%s: %s",
+                rows[-1]["image"],
+                {k: round(v, 3) for k, v in rows[-1].items() if k != "image"},
+            )
     if not rows:
         raise ValueError(f"no image with a confident line frame in {list(map(str, scene_dirs))}")
-    return {"real_images": len(rows),
-            "real_dir_err_median": float(np.median([r["dir_err"] for r in rows])),
-            "real_dir_err_mean": float(np.mean([r["dir_err"] for r in rows])),
-            "real_agree_median": float(np.median([r["agree"] for r in rows])), "rows": rows}
+    return {
+        "real_images": len(rows),
+        "real_dir_err_median": float(np.median([r["dir_err"] for r in rows])),
+        "real_dir_err_mean": float(np.mean([r["dir_err"] for r in rows])),
+        "real_agree_median": float(np.median([r["agree"] for r in rows])),
+        "rows": rows,
+    }
 
 
-def time_inference(model: str | Path, threads: int, width: int = 1536, height: int = 1024,
-                   repeats: int = 5) -> float:
+def time_inference(
+    model: str | Path, threads: int, width: int = 1536, height: int = 1024, repeats: int = 5
+) -> float:
     from ..depth.onnx import OnnxDepthSource
 
     src = OnnxDepthSource(model, providers=["CPUExecutionProvider"], num_threads=threads)
@@ -167,18 +186,25 @@ def main(argv=None) -> int:
     p.add_argument("--texture_dir", type=Path, default=None)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--timing", action="store_true")
-    p.add_argument("--real", type=Path, nargs="*", default=[],
-                   help="COLMAP scene folders (images/, sparse/) of real photos")
+    p.add_argument(
+        "--real",
+        type=Path,
+        nargs="*",
+        default=[],
+        help="COLMAP scene folders (images/, sparse/) of real photos",
+    )
     p.add_argument("--output", type=Path, default=None, help="JSON of the results")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    res = evaluate(args.model, args.num, args.seed, texture_dir=args.texture_dir,
-                   threads=args.threads)
+    res = evaluate(
+        args.model, args.num, args.seed, texture_dir=args.texture_dir, threads=args.threads
+    )
     if args.real:
         from ..depth.onnx import OnnxDepthSource
 
-        src = OnnxDepthSource(args.model, providers=["CPUExecutionProvider"],
-                              num_threads=args.threads)
+        src = OnnxDepthSource(
+            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
+        )
         real = evaluate_real(lambda path, rgb: src(rgb), args.real)
         real.pop("rows")
         res.update(real)

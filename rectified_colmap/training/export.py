@@ -22,14 +22,22 @@ EXPORTER = Path(__file__).resolve().parents[2] / "scripts" / "export_depth_onnx.
 
 def model_spec(max_side: int = 384, description: str = "") -> ModelSpec:
     return ModelSpec(
-        input_name="image", output_name="depth", layout="NCHW", color="RGB",
-        scale=INPUT_SCALE, mean=list(INPUT_MEAN), std=list(INPUT_STD),
+        input_name="image",
+        output_name="depth",
+        layout="NCHW",
+        color="RGB",
+        scale=INPUT_SCALE,
+        mean=list(INPUT_MEAN),
+        std=list(INPUT_STD),
         resize={"mode": "keep_aspect", "max_side": int(max_side), "multiple_of": 32},
-        output="depth", name=MODEL_NAME,
+        output="depth",
+        name=MODEL_NAME,
         licence="Apache-2.0 (encoder: EfficientNet-Lite0 ImageNet weights, Apache-2.0); "
-                "trained by rectified_colmap on procedural renders",
-        description=description or "EfficientNet-Lite0 + fusion decoder, trained on "
-        "synthetic street scenes; positive z-depth up to scale, for normals and planes")
+        "trained by rectified_colmap on procedural renders",
+        description=description
+        or "EfficientNet-Lite0 + fusion decoder, trained on "
+        "synthetic street scenes; positive z-depth up to scale, for normals and planes",
+    )
 
 
 def _exporter():
@@ -41,9 +49,16 @@ def _exporter():
     return module
 
 
-def export_onnx(model, output: str | Path, spec: ModelSpec | None = None, height: int = 256,
-                width: int = 320, fp16: bool = False, verify: bool = True,
-                fp16_storage: bool = False) -> dict:
+def export_onnx(
+    model,
+    output: str | Path,
+    spec: ModelSpec | None = None,
+    height: int = 256,
+    width: int = 320,
+    fp16: bool = False,
+    verify: bool = True,
+    fp16_storage: bool = False,
+) -> dict:
     """Write ``model`` (eval mode, positive depth output) to ``output``; returns the
     onnxruntime-vs-torch errors when verified."""
     import onnx
@@ -57,16 +72,33 @@ def export_onnx(model, output: str | Path, spec: ModelSpec | None = None, height
     try:
         mod = _exporter()
         if mod is not None:
-            return mod.export_depth_onnx(model, output, spec, height=height, width=width,
-                                         dynamic=True, fp16=fp16, verify=verify,
-                                         fp16_storage=fp16_storage)
+            return mod.export_depth_onnx(
+                model,
+                output,
+                spec,
+                height=height,
+                width=width,
+                dynamic=True,
+                fp16=fp16,
+                verify=verify,
+                fp16_storage=fp16_storage,
+            )
         tmp = output.with_suffix(".raw.onnx")
         x = torch.randn(1, 3, height, width)
-        torch.onnx.export(model, (x,), str(tmp), opset_version=17, input_names=["image"],
-                          output_names=["depth"], do_constant_folding=True, dynamo=False,
-                          dynamic_axes={"image": {0: "batch", 2: "height", 3: "width"},
-                                        "depth": {0: "batch", 2: "out_height",
-                                                  3: "out_width"}})
+        torch.onnx.export(
+            model,
+            (x,),
+            str(tmp),
+            opset_version=17,
+            input_names=["image"],
+            output_names=["depth"],
+            do_constant_folding=True,
+            dynamo=False,
+            dynamic_axes={
+                "image": {0: "batch", 2: "height", 3: "width"},
+                "depth": {0: "batch", 2: "out_height", 3: "out_width"},
+            },
+        )
         proto = onnx.load(str(tmp))
         tmp.unlink()
         attach_metadata(proto, spec)

@@ -25,8 +25,11 @@ def valid_mask(depth: torch.Tensor) -> torch.Tensor:
 def log_residual(pred_log, depth):
     """(d, mask): d = pred_log - log(depth), 0 where invalid."""
     mask = valid_mask(depth)
-    d = torch.where(mask, pred_log - torch.log(torch.where(mask, depth, torch.ones_like(depth))),
-                    torch.zeros_like(pred_log))
+    d = torch.where(
+        mask,
+        pred_log - torch.log(torch.where(mask, depth, torch.ones_like(depth))),
+        torch.zeros_like(pred_log),
+    )
     return d, mask
 
 
@@ -59,8 +62,11 @@ def gradient_loss(pred_log, depth, scales: int = 4):
 def pixel_rays(K, h: int, w: int):
     """(B, 3, h, w) rays with z = 1 through the pixel centres (COLMAP convention)."""
     dev, dt = K.device, K.dtype
-    v, u = torch.meshgrid(torch.arange(h, device=dev, dtype=dt) + OFFSET,
-                          torch.arange(w, device=dev, dtype=dt) + OFFSET, indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(h, device=dev, dtype=dt) + OFFSET,
+        torch.arange(w, device=dev, dtype=dt) + OFFSET,
+        indexing="ij",
+    )
     x = (u[None] - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None]
     y = (v[None] - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None]
     return torch.stack([x, y, torch.ones_like(x)], 1)
@@ -81,15 +87,26 @@ def normals_from_log_depth(pred_log, K):
 def interior_normal_mask(inv_depth, valid, normals, tol: float = 1e-3):
     """(B, 1, H-2, W-2): valid GT pixels that lie on one plane with their 4 neighbours: same
     normal, and inverse depth (affine on a plane) equal to the mean of each opposite pair."""
-    ok = valid[:, :, 1:-1, 1:-1] & valid[:, :, 1:-1, 2:] & valid[:, :, 1:-1, :-2] & \
-        valid[:, :, 2:, 1:-1] & valid[:, :, :-2, 1:-1]
+    ok = (
+        valid[:, :, 1:-1, 1:-1]
+        & valid[:, :, 1:-1, 2:]
+        & valid[:, :, 1:-1, :-2]
+        & valid[:, :, 2:, 1:-1]
+        & valid[:, :, :-2, 1:-1]
+    )
     c = normals[:, :, 1:-1, 1:-1]
-    for nb in (normals[:, :, 1:-1, 2:], normals[:, :, 1:-1, :-2],
-               normals[:, :, 2:, 1:-1], normals[:, :, :-2, 1:-1]):
+    for nb in (
+        normals[:, :, 1:-1, 2:],
+        normals[:, :, 1:-1, :-2],
+        normals[:, :, 2:, 1:-1],
+        normals[:, :, :-2, 1:-1],
+    ):
         ok = ok & ((c * nb).sum(1, keepdim=True) > 0.999)
     q = inv_depth[:, :, 1:-1, 1:-1]
-    for a, b in ((inv_depth[:, :, 1:-1, 2:], inv_depth[:, :, 1:-1, :-2]),
-                 (inv_depth[:, :, 2:, 1:-1], inv_depth[:, :, :-2, 1:-1])):
+    for a, b in (
+        (inv_depth[:, :, 1:-1, 2:], inv_depth[:, :, 1:-1, :-2]),
+        (inv_depth[:, :, 2:, 1:-1], inv_depth[:, :, :-2, 1:-1]),
+    ):
         ok = ok & ((a + b - 2 * q).abs() <= tol * q.abs())
     return ok
 
@@ -116,12 +133,14 @@ def normal_loss(pred_log, depth, normals, K, scales: int = 2):
     pixels, at ``scales`` resolutions (see :func:`downsample_level`)."""
     total = pred_log.new_zeros(())
     valid = valid_mask(depth)
-    inv_depth = torch.where(valid, 1.0 / torch.where(valid, depth, torch.ones_like(depth)),
-                            torch.zeros_like(depth))
+    inv_depth = torch.where(
+        valid, 1.0 / torch.where(valid, depth, torch.ones_like(depth)), torch.zeros_like(depth)
+    )
     for k in range(scales):
         if k:
-            pred_log, inv_depth, valid, normals, K = downsample_level(pred_log, inv_depth,
-                                                                      valid, normals, K)
+            pred_log, inv_depth, valid, normals, K = downsample_level(
+                pred_log, inv_depth, valid, normals, K
+            )
         n = normals_from_log_depth(pred_log, K)
         mask = interior_normal_mask(inv_depth, valid, normals).float()
         cos = (n * normals[:, :, 1:-1, 1:-1]).sum(1, keepdim=True)
@@ -129,10 +148,14 @@ def normal_loss(pred_log, depth, normals, K, scales: int = 2):
     return total / scales
 
 
-def total_loss(pred_log, batch, w_si: float = 1.0, w_grad: float = 1.0,
-               w_normal: float = 1.0) -> tuple[torch.Tensor, dict[str, float]]:
+def total_loss(
+    pred_log, batch, w_si: float = 1.0, w_grad: float = 1.0, w_normal: float = 1.0
+) -> tuple[torch.Tensor, dict[str, float]]:
     depth, normals, K = batch["depth"], batch["normals"], batch["K"]
-    parts = {"si": si_log_loss(pred_log, depth), "grad": gradient_loss(pred_log, depth),
-             "normal": normal_loss(pred_log, depth, normals, K)}
+    parts = {
+        "si": si_log_loss(pred_log, depth),
+        "grad": gradient_loss(pred_log, depth),
+        "normal": normal_loss(pred_log, depth, normals, K),
+    }
     loss = w_si * parts["si"] + w_grad * parts["grad"] + w_normal * parts["normal"]
     return loss, {k: float(v.detach()) for k, v in parts.items()}

