@@ -85,6 +85,8 @@ def extract_method(
     conf = ExtractConf.from_dict(overrides)
     if args.max_num_features:
         conf.sift.max_num_features = args.max_num_features
+    if method == "sift":
+        conf.sift.coarse_first = False  # exactly plain COLMAP SIFT
     source = None
     if args.depth_model == "none":
         pass  # no depth: plain SIFT, or lines only with vp.depth_free

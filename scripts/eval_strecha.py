@@ -65,7 +65,9 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     model, params = scene_camera(scene)
     sift = {"max_num_features": args.max_num_features} if args.max_num_features else {}
     if method == "sift":
-        kw = dict(conf={"planes": {"min_area_frac": 2.0}, "sift": sift}, depth_model="none")
+        # exactly plain COLMAP SIFT (no patch can pass, no coarse-first)
+        conf = {"planes": {"min_area_frac": 2.0}, "sift": {**sift, "coarse_first": False}}
+        kw = dict(conf=conf, depth_model="none")
     else:
         depth_model = args.depth_model or DEFAULT_DEPTH_MODEL
         overrides = json.loads(args.rect_conf) if args.rect_conf else {}
