@@ -16,6 +16,7 @@ import numpy as np
 import pycolmap
 
 from .config import SiftConf
+from .geometry import scaled_size
 
 
 @dataclass
@@ -241,8 +242,7 @@ def detect_sift(
     if conf.max_image_size > 0 and max(h, w) > conf.max_image_size:
         import cv2
 
-        s = conf.max_image_size / max(h, w)
-        nw, nh = max(1, round(w * s)), max(1, round(h * s))
+        nw, nh = scaled_size(w, h, conf.max_image_size, min_side=1)
         image = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
         sx, sy = w / nw, h / nh
     image = np.ascontiguousarray(image)

@@ -22,6 +22,7 @@ from .config import ExtractConf
 from .dedup import fill_from_plain
 from .depth import DepthMap, resample_depth
 from .features import Features, coarse_first_pays, detect_sift, keypoints_in_mask, split_budget
+from .geometry import scaled_size
 from .normals import backproject, estimate_normals
 from .planes import PlaneResult, detect_planes
 from .rectify import Rectification, plan_rectification, rectified_to_image, warp_to_rectified
@@ -41,12 +42,6 @@ class ImageResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def work_size(width: int, height: int, max_size: int) -> tuple[int, int]:
-    """Grid size (w, h) for normals and plane labels: the image scaled to ``max_size``."""
-    s = min(1.0, max_size / max(width, height))
-    return max(8, round(width * s)), max(8, round(height * s))
-
-
 def depth_to_normals(
     depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf, shift: float | None = None
 ) -> np.ndarray:
@@ -55,7 +50,7 @@ def depth_to_normals(
     The grid is never finer than the depth map: upsampled depth is piecewise constant or
     interpolated, and neither adds information to a plane fit."""
     max_size = min(conf.normals.work_max_size, max(depth.values.shape))
-    w, h = work_size(camera.width, camera.height, max_size)
+    w, h = scaled_size(camera.width, camera.height, max_size)
     if depth.kind == "disparity" and shift is None:
         shift = _disparity_shift(depth, camera, conf)
     z = resample_depth(depth.to_depth(shift or 0.0), w, h)
@@ -322,7 +317,7 @@ def extract_image(
         from .vp import depth_free_planes
 
         t0 = time.perf_counter()
-        w, h = work_size(W, H, conf.normals.work_max_size)
+        w, h = scaled_size(W, H, conf.normals.work_max_size)
         planes, _ = depth_free_planes(
             gray, camera, (h, w), conf.vp, conf.planes.min_area_frac, rng=rng
         )

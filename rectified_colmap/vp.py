@@ -58,6 +58,7 @@ import pycolmap
 from . import camera as cam_utils
 from .config import VpConf
 from .conventions import from_opencv_points, pixel_centers, to_opencv_points
+from .geometry import skew
 from .planes import Patch, PlaneResult
 
 logger = logging.getLogger(__name__)
@@ -259,10 +260,6 @@ def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(w, np.float64).reshape(3, 1))[0]
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
 def _refine(
     seg: Segments, F: np.ndarray, conf: VpConf
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -310,7 +307,7 @@ def _refine(
     cov = sigma0_sq * (U[:, ~null] / lam[~null]) @ U[:, ~null].T
     sigma = np.empty(3)
     for k in range(3):
-        S = _skew(F[k])
+        S = skew(F[k])
         free = np.linalg.norm(np.cross(U[:, null].T, F[k]), axis=-1) > 1e-3
         sigma[k] = (
             np.inf if free.any() else np.sqrt(max(np.linalg.eigvalsh(S @ cov @ S.T).max(), 0.0))

@@ -45,7 +45,8 @@ from rectified_colmap.eval.homography import (
     read_homography_pairs,
     visible_grid,
 )
-from rectified_colmap.pipeline import extract_image, work_size
+from rectified_colmap.geometry import scaled_size
+from rectified_colmap.pipeline import extract_image
 
 logger = logging.getLogger("eval_homography")
 METHODS = ("sift", "rectsift", "oracle")
@@ -105,7 +106,7 @@ def extract_method(
             if source is not None:
                 depth = source(rgb, cam, name)
             elif method == "oracle" or base == "oracle":
-                w, h = work_size(cam.width, cam.height, conf.normals.work_max_size)
+                w, h = scaled_size(cam.width, cam.height, conf.normals.work_max_size)
                 nmap = np.broadcast_to(normals[name], (h, w, 3)).copy()
             res = extract_image(rgb, cam, depth, conf, np.random.default_rng(0), normals=nmap)
             writer.write(name, res.features, (cam.width, cam.height))
