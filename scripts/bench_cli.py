@@ -39,6 +39,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rectified_colmap.io.images import image_size, list_images
+
 PLAIN = """
 import sys, pycolmap
 db, images, n, names = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4].split(",")
@@ -85,8 +87,6 @@ def prepare_images(args, folder: Path) -> list[str]:
             names.append(f"street_{i:03d}.png")
             cv2.imwrite(str(folder / names[-1]), r.image[:, :, ::-1])
         return names
-    from rectified_colmap.io.images import list_images
-
     names = list_images(Path(args.image_path))[: args.max_images]
     for name in names:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
@@ -135,7 +135,7 @@ def main(argv=None):
         images = tmp / "images"
         images.mkdir()
         names = prepare_images(args, images)
-        size = cv2.imread(str(images / names[0]), cv2.IMREAD_GRAYSCALE).shape[::-1]
+        size = image_size(images / names[0])
         n = args.max_num_features
         cmds = {
             "pycolmap": [sys.executable, "-c", PLAIN, None, str(images), str(n), ",".join(names)],
@@ -168,9 +168,7 @@ def main(argv=None):
         if args.camera_params:
             params = [float(v) for v in args.camera_params.split(",")]
             if args.resize and args.image_path:
-                w0, _ = cv2.imread(
-                    str(Path(args.image_path) / names[0]), cv2.IMREAD_GRAYSCALE
-                ).shape[::-1]
+                w0, _ = image_size(Path(args.image_path) / names[0])
                 params = [v * size[0] / w0 for v in params]
             cmds["rectified"] += [
                 "--camera_model",

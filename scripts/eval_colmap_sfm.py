@@ -34,6 +34,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from rectified_colmap.geometry import rotation_angle_deg
+
 VERIFIED = (2, 3, 4, 5, 6)  # CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC
 
 
@@ -70,8 +72,7 @@ def rotation_errors(rec: pycolmap.Reconstruction, gt: pycolmap.Reconstruction) -
     for a, b in combinations(ims, 2):
         r_est = rot(b) @ rot(a).T
         r_gt = rot(gt_by_name[b.name]) @ rot(gt_by_name[a.name]).T
-        c = np.clip((np.trace(r_est.T @ r_gt) - 1) / 2, -1, 1)
-        errs.append(np.degrees(np.arccos(c)))
+        errs.append(rotation_angle_deg(r_est.T @ r_gt))
     return np.asarray(errs)
 
 
