@@ -239,10 +239,10 @@ def detect_sift(
         return Features.empty()
     sx = sy = 1.0
     h, w = image.shape
-    if conf.max_image_size > 0 and max(h, w) > conf.max_image_size:
+    nw, nh = sift_input_size(w, h, conf)
+    if (nw, nh) != (w, h):
         import cv2
 
-        nw, nh = scaled_size(w, h, conf.max_image_size, min_side=1)
         image = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
         sx, sy = w / nw, h / nh
     image = np.ascontiguousarray(image)
@@ -265,13 +265,18 @@ def coarse_first_pays(
     with this budget: ``conf.coarse_first`` and at least
     ``conf.coarse_first_pixels_per_feature`` pixels per feature after SIFT's downscaling to
     ``conf.max_image_size`` (there the coarser octaves fill the budget)."""
-    h, w = shape
-    if conf.max_image_size > 0 and max(h, w) > conf.max_image_size:
-        s = conf.max_image_size / max(h, w)
-        h, w = h * s, w * s
-    return bool(conf.coarse_first) and h * w >= conf.coarse_first_pixels_per_feature * max(
+    w, h = sift_input_size(shape[1], shape[0], conf)
+    return bool(conf.coarse_first) and w * h >= conf.coarse_first_pixels_per_feature * max(
         1, max_num_features
     )
+
+
+def sift_input_size(width: int, height: int, conf: SiftConf = SiftConf()) -> tuple[int, int]:
+    """(w, h) of the image SIFT sees: downscaled to ``conf.max_image_size`` when larger,
+    as COLMAP does (``geometry.scaled_size``, at least 1 px a side)."""
+    if conf.max_image_size > 0 and max(width, height) > conf.max_image_size:
+        return scaled_size(width, height, conf.max_image_size, min_side=1)
+    return width, height
 
 
 def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray:
