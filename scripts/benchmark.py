@@ -44,10 +44,10 @@ import numpy as np  # noqa: E402
 
 from rectified_colmap import camera as cam_utils  # noqa: E402
 from rectified_colmap import features, pipeline  # noqa: E402
-from rectified_colmap.config import ExtractConf, confs  # noqa: E402
+from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs  # noqa: E402
 from rectified_colmap.depth import DepthMap  # noqa: E402
-from rectified_colmap.extract import list_images, read_image  # noqa: E402
 from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
+from rectified_colmap.io.images import list_images, read_image  # noqa: E402
 from rectified_colmap.pipeline import extract_image  # noqa: E402
 
 STAGES = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches", "dedup"]
@@ -156,7 +156,7 @@ def main(argv=None) -> int:
     p.add_argument("--image_path", type=Path)
     p.add_argument("--image_list", type=Path)
     p.add_argument("--depth_path", type=Path)
-    p.add_argument("--depth_model", default="rectsift-lite0")
+    p.add_argument("--depth_model", default=DEFAULT_DEPTH_MODEL)
     p.add_argument("--camera_model", default="PINHOLE")
     p.add_argument("--camera_params", help="for the images' own size (rescaled with --resize)")
     p.add_argument("--max_images", type=int, default=5)

@@ -93,7 +93,7 @@ def extract_method(
         pass  # no depth: plain SIFT, or lines only with vp.depth_free
     elif method == "rectsift" or (method in args.variants and base == "rectsift"):
         from rectified_colmap.depth.registry import load_depth_source
-        from rectified_colmap.extract import DEFAULT_DEPTH_MODEL
+        from rectified_colmap.config import DEFAULT_DEPTH_MODEL
 
         source = load_depth_source(args.depth_model or DEFAULT_DEPTH_MODEL, num_threads=1)
     tmp = h5.with_suffix(".h5.tmp")

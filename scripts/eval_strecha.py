@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rectified_colmap.config import EvalConf, LocalizeConf
+from rectified_colmap.config import EvalConf, LocalizeConf, SiftConf
 from rectified_colmap.eval.localize import accuracy_table, localize_with_model
 from rectified_colmap.eval.pairs import read_pairs_with_gt
 from rectified_colmap.eval.relpose import evaluate_pairs
@@ -111,7 +111,8 @@ def main(argv=None) -> int:
         "--max_num_features",
         type=int,
         default=None,
-        help="SIFT budget per image for both methods (default 8192)",
+        help="SIFT budget per image for both methods (default: the configuration's, "
+        f"{SiftConf().max_num_features})",
     )
     p.add_argument(
         "--rect_conf",

@@ -466,7 +466,7 @@ def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
     from eval_strecha import scene_camera  # scripts/ is on sys.path when run as a script
 
     from rectified_colmap.camera import make_camera
-    from rectified_colmap.extract import read_image
+    from rectified_colmap.io.images import read_image
 
     cv2.setNumThreads(1)  # as extract's workers
     lines, whole = ExtractConf(), ExtractConf()
