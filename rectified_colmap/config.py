@@ -128,15 +128,26 @@ class SiftConf:
     from ~3 MP up); 500 leaves a margin."""
 
 
+DISPARITY_SHIFTS = ("zero", "orthogonal")
+"""Values of ``DepthConf.disparity_shift`` (rectified_colmap.disparity)."""
+
+
 @dataclass
 class DepthConf:
-    """Where depth comes from and how disparity is turned into depth."""
+    """How disparity is turned into depth (rectified_colmap.disparity)."""
 
     disparity_shift: str = "orthogonal"
     """'zero' (t = 0) or 'orthogonal' (shift from two orthogonal dominant planes; falls back
     to 0 without two planes). Only for disparity (affine-invariant) models. On rendered
     streets with smooth 5% depth errors, 'orthogonal' keeps normal errors ~5.6 deg whatever
     the true shift, 'zero' grows to 7.4 / 15.5 deg at shifts 0.3 / 1.0 x median(1/z)."""
+
+    def __post_init__(self):
+        if self.disparity_shift not in DISPARITY_SHIFTS:
+            raise ValueError(
+                f"depth.disparity_shift must be one of {DISPARITY_SHIFTS}, "
+                f"got {self.disparity_shift!r}"
+            )
 
 
 @dataclass

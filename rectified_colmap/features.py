@@ -12,11 +12,13 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import pycolmap
 
 from .config import SiftConf
 from .geometry import scaled_size
+from .rectify import Rectification, rectified_to_image, warp_to_rectified
 
 
 @dataclass
@@ -241,8 +243,6 @@ def detect_sift(
     h, w = image.shape
     nw, nh = sift_input_size(w, h, conf)
     if (nw, nh) != (w, h):
-        import cv2
-
         image = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
         sx, sy = w / nw, h / nh
     image = np.ascontiguousarray(image)
@@ -303,3 +303,93 @@ def keypoints_in_mask(xy: np.ndarray, mask: np.ndarray, image_size: tuple[int, i
     out = np.zeros(len(xy), dtype=bool)
     out[inside] = mask[row[inside], col[inside]]
     return out
+
+
+def rectification_budgets(masks: np.ndarray, total: int, keep_plain: bool) -> np.ndarray:
+    """(n + 1,) feature budgets [plain, rect 0, ...] summing to at most ``total``, for the
+    (n, h, w) bool viewing masks of n rectifications (rectify.viewing_masks).
+
+    Shares follow areas: plain SIFT gets the uncovered cells (with keep_plain: all cells,
+    the covered ones at half weight), the rectifications the covered cells (half weight
+    with keep_plain). When rectifications overlap, the share of the covered cells (their
+    union) is split between them in proportion to each one's own covered area; without
+    overlap this is each one's own area. So plain SIFT's share, and the total, never
+    depend on the overlap."""
+    own = masks.reshape(len(masks), -1).sum(1).astype(float)
+    union = float(masks.any(0).sum())
+    cells = masks.shape[1] * masks.shape[2]
+    areas = np.concatenate([[cells - union], own * union / max(own.sum(), 1.0)])
+    if keep_plain:  # rectified pixels share their budget with plain SIFT
+        areas[0] += areas[1:].sum() / 2
+        areas[1:] /= 2
+    return split_budget(total, areas)
+
+
+def plain_features(
+    gray: np.ndarray, region: np.ndarray, budget: int, conf: SiftConf, margin: int = 16
+) -> Features:
+    """About ``budget`` plain SIFT features on the pixels of ``region`` (a grid covering the
+    image), detected on the region's bounding box only."""
+    H, W = gray.shape
+    h, w = region.shape
+    rows, cols = np.flatnonzero(region.any(1)), np.flatnonzero(region.any(0))
+    x0 = max(0, int(np.floor(cols[0] * W / w)) - margin)
+    x1 = min(W, int(np.ceil((cols[-1] + 1) * W / w)) + margin)
+    y0 = max(0, int(np.floor(rows[0] * H / h)) - margin)
+    y1 = min(H, int(np.ceil((rows[-1] + 1) * H / h)) + margin)
+    box = region[
+        int(y0 * h / H) : int(np.ceil(y1 * h / H)), int(x0 * w / W) : int(np.ceil(x1 * w / W))
+    ]
+    n = round(budget * box.size / max(region.sum(), 1))  # SIFT's budget covers the whole box
+    box_img = np.ascontiguousarray(gray[y0:y1, x0:x1])
+    feats = detect_sift(box_img, conf, n, coarse_first=coarse_first_pays(box_img.shape, n, conf))
+    feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
+    return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
+
+
+def rectified_features(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    rect: Rectification,
+    index: int,
+    budget: int,
+    conf: SiftConf,
+    border: int,
+) -> Features:
+    """SIFT inside one rectified patch (``budget`` features, ``conf.patch_first_octave``),
+    mapped back to the original image; features closer than ``border`` rectified pixels to
+    the border of the warped region are dropped. ``index`` is their source."""
+    patch_img = warp_to_rectified(gray, camera, rect)
+    feats = detect_sift(
+        patch_img,
+        conf,
+        budget,
+        conf.patch_first_octave,
+        coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
+    )
+    if len(feats) == 0:
+        return feats
+    valid = rect.mask.astype(np.uint8)
+    if border > 0:
+        valid = cv2.erode(
+            valid,
+            np.ones((2 * border + 1, 2 * border + 1), np.uint8),
+            borderType=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+    keep = keypoints_in_mask(feats.keypoints, valid.astype(bool), rect.size)
+    feats = feats.subset(keep)
+    xy, J = rectified_to_image(camera, rect, feats.keypoints)
+    inside = (
+        np.isfinite(xy).all(1)
+        & (xy[:, 0] >= 0)
+        & (xy[:, 1] >= 0)
+        & (xy[:, 0] <= camera.width)
+        & (xy[:, 1] <= camera.height)
+    )
+    return Features(
+        xy[inside],
+        (J @ feats.shapes)[inside],
+        feats.descriptors[inside],
+        np.full(int(inside.sum()), index, np.int32),
+    )

@@ -19,8 +19,12 @@ import logging
 
 import cv2
 import numpy as np
+import pycolmap
 
+from . import camera as cam_utils
 from .config import NormalConf
+from .depth import DepthMap, resample_depth
+from .geometry import scaled_size
 
 logger = logging.getLogger(__name__)
 
@@ -168,3 +172,18 @@ def estimate_normals(points: np.ndarray, conf: NormalConf = NormalConf()) -> np.
     n[~planar] = np.nan
     out[ok] = n
     return out
+
+
+def depth_to_normals(depth: DepthMap, camera: pycolmap.Camera, conf: NormalConf) -> np.ndarray:
+    """Depth (kind ``depth`` or ``metric``) of any resolution -> normals (h, w, 3) on the work
+    grid. Disparity must be resolved first (rectified_colmap.disparity.resolve_disparity).
+
+    The grid is never finer than the depth map: upsampled depth is piecewise constant or
+    interpolated, and neither adds information to a plane fit."""
+    if depth.kind == "disparity":
+        raise ValueError("depth_to_normals needs depth: resolve disparity first (disparity.py)")
+    max_size = min(conf.work_max_size, max(depth.values.shape))
+    w, h = scaled_size(camera.width, camera.height, max_size)
+    z = resample_depth(depth.to_depth(), w, h)
+    points = backproject(z, cam_utils.grid_rays(camera, w, h))
+    return estimate_normals(points, conf)

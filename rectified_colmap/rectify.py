@@ -340,3 +340,100 @@ def rectified_to_image(
                     - cam_utils.rays_to_image(camera, rays - d)
                 ) / (2 * h)
     return out, Jp @ Jm
+
+
+def patch_evidence(
+    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per patch: (median viewing angle in degrees, median texture), each (n,).
+
+    The viewing angle of a cell is the angle between its ray and the patch normal (0: the
+    patch is seen frontally there); texture is the Sobel gradient magnitude of the image
+    resampled to the work grid (INTER_AREA; 8 x grey levels per work cell; sky and blank
+    walls are under ~5, Strecha facades ~40, cobblestones ~15)."""
+    if not patches:
+        return np.zeros(0), np.zeros(0)
+    h, w = patches[0].mask.shape
+    rays = cam_utils.grid_rays(camera, w, h)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    g = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
+    angle, texture = np.zeros(len(patches)), np.zeros(len(patches))
+    for i, p in enumerate(patches):
+        cos = np.clip(-(rays[p.mask] @ p.normal), -1.0, 1.0)
+        angle[i] = np.degrees(np.arccos(np.median(cos))) if cos.size else 0.0
+        texture[i] = np.median(mag[p.mask]) if cos.size else 0.0
+    return angle, texture
+
+
+def patches_worth_rectifying(
+    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch], conf: RectifyConf
+) -> list[int]:
+    """Indices of the patches to rectify. Left to plain SIFT (at full budget: the pipeline
+    fills from plain SIFT) are patches seen nearly frontally (median viewing angle under
+    conf.min_rectify_angle_deg: the warp would change little) and patches without texture
+    (median gradient under conf.min_texture: sky, blank walls)."""
+    angle, texture = patch_evidence(gray, camera, patches)
+    keep = (angle >= conf.min_rectify_angle_deg) & (texture >= conf.min_texture)
+    if len(patches):
+        logger.debug(
+            "patches: viewing angle %s, texture %s -> rectify %s",
+            np.round(angle),
+            np.round(texture),
+            keep.astype(int),
+        )
+    return [int(i) for i in np.flatnonzero(keep)]
+
+
+def rectifications_within_area(
+    camera: pycolmap.Camera, patches: list[Patch], indices: list[int], conf: RectifyConf
+) -> list[Rectification]:
+    """Rectifications (plan_rectification) of the given patches, scaled down together when
+    their summed size exceeds ``conf.max_total_area_factor`` x the image area x the
+    patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
+    to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
+    patches of their size would get)."""
+
+    def plan(scale):
+        rects = (plan_rectification(camera, patches[i], i, conf, scale) for i in indices)
+        return [r for r in rects if r is not None]
+
+    rects = plan(1.0)
+    total = sum(r.size[0] * r.size[1] for r in rects)
+    masks = [patches[i].mask for i in indices]
+    overlap = 1.0
+    if masks:
+        overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
+    budget = conf.max_total_area_factor * camera.width * camera.height * overlap
+    if total > budget:
+        rects = plan(float(np.sqrt(budget / total)))
+    return rects
+
+
+def viewing_masks(
+    camera: pycolmap.Camera,
+    rects: list[Rectification],
+    patches: list[Patch],
+    shape: tuple[int, int],
+    max_viewing_angle_deg: float,
+) -> np.ndarray:
+    """(n, h, w) bool: the work-grid cells each rectification covers: cells of its patch
+    whose viewing angle is within the limit (cells beyond it are left to plain SIFT).
+    Patches may overlap (depth-free whole-image warps): a cell can be in several masks."""
+    h, w = shape
+    rays = cam_utils.grid_rays(camera, w, h)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    cos_max = np.cos(np.deg2rad(max_viewing_angle_deg))
+    out = np.zeros((len(rects), h, w), bool)
+    for i, rect in enumerate(rects):
+        out[i] = patches[rect.patch_index].mask & (-(rays @ rect.normal) >= cos_max)
+    return out
+
+
+def viewing_coverage(masks: np.ndarray) -> np.ndarray:
+    """(n, h, w) bool viewing_masks -> (h, w) int16: the first rectification covering
+    each cell (-1: none)."""
+    cover = np.full(masks.shape[1:], -1, np.int16)
+    for i in range(len(masks) - 1, -1, -1):
+        cover[masks[i]] = i
+    return cover

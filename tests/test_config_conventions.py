@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import conventions
-from rectified_colmap.config import ExtractConf, confs
+from rectified_colmap.config import DISPARITY_SHIFTS, DepthConf, ExtractConf, confs
 
 
 def test_conf_from_dict_merges_and_rejects_unknown():
@@ -17,6 +17,19 @@ def test_conf_from_dict_merges_and_rejects_unknown():
         ExtractConf.from_dict({"nope": {}})
     for name in confs:
         ExtractConf.from_dict(confs[name])
+
+
+def test_disparity_shift_is_one_checked_option():
+    assert DISPARITY_SHIFTS == ("zero", "orthogonal")
+    assert ExtractConf().depth.disparity_shift == "orthogonal"
+    for value in DISPARITY_SHIFTS:
+        conf = ExtractConf.from_dict({"depth": {"disparity_shift": value}})
+        assert conf.depth.disparity_shift == value
+    msg = r"depth.disparity_shift must be one of \('zero', 'orthogonal'\), got 'orthogonl'"
+    with pytest.raises(ValueError, match=msg):
+        ExtractConf.from_dict({"depth": {"disparity_shift": "orthogonl"}})
+    with pytest.raises(ValueError, match=msg):
+        DepthConf(disparity_shift="orthogonl")
 
 
 def test_pixel_centers():

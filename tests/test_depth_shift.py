@@ -7,7 +7,8 @@ import pytest
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.config import ExtractConf
-from rectified_colmap.depth.shift import disparity_to_depth, estimate_shift
+from rectified_colmap.depth import DepthMap, disparity_to_depth
+from rectified_colmap.disparity import estimate_shift, resolve_disparity
 from rectified_colmap.normals import backproject, estimate_normals
 
 W, H, F = 192, 144, 150.0
@@ -69,3 +70,24 @@ def test_single_plane_falls_back_to_zero():
     z, _ = plane_scene(single=True)
     p = np.where(np.isfinite(z), 1.0 / z + 0.1, np.nan).astype(np.float32)
     assert estimate_shift(p, cam()) == 0.0
+
+
+def test_resolve_disparity_uses_the_conf_and_leaves_depth_alone():
+    z, _ = plane_scene()
+    inv = 1.0 / z
+    p = np.where(np.isfinite(inv), 3.0 * inv + 0.5 * np.nanmedian(inv), np.nan).astype(np.float32)
+    depth = DepthMap(z, "metric")
+    assert resolve_disparity(depth, cam(), ExtractConf()) is depth
+    conf = ExtractConf()
+    t = estimate_shift(p, cam(), conf)
+    assert t != 0.0
+    ortho = resolve_disparity(DepthMap(p, "disparity"), cam(), conf)
+    assert ortho.kind == "depth"
+    np.testing.assert_array_equal(ortho.values, disparity_to_depth(p, t))
+    conf.depth.disparity_shift = "zero"
+    zero = resolve_disparity(DepthMap(p, "disparity"), cam(), conf)
+    assert zero.kind == "depth"
+    np.testing.assert_array_equal(zero.values, disparity_to_depth(p, 0.0))
+    conf.depth.disparity_shift = "orthogonl"  # set after the conf was built: still an error
+    with pytest.raises(ValueError, match="depth.disparity_shift must be one of"):
+        resolve_disparity(DepthMap(p, "disparity"), cam(), conf)

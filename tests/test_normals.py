@@ -3,7 +3,13 @@ import pytest
 
 from rectified_colmap.camera import grid_rays, make_camera
 from rectified_colmap.config import NormalConf
-from rectified_colmap.normals import backproject, estimate_normals, smallest_eigenvectors
+from rectified_colmap.depth import DepthMap
+from rectified_colmap.normals import (
+    backproject,
+    depth_to_normals,
+    estimate_normals,
+    smallest_eigenvectors,
+)
 
 W, H = 160, 120
 
@@ -135,3 +141,15 @@ def test_bad_shapes():
         estimate_normals(np.zeros((10, 10)))
     with pytest.raises(ValueError, match="window"):
         estimate_normals(np.zeros((10, 10, 3), np.float32), NormalConf(window=4))
+
+
+def test_depth_to_normals_on_the_work_grid_never_finer_than_the_depth(rays):
+    cam = make_camera("PINHOLE", [150.0, 140.0, 80.0, 61.0], W, H)
+    z = plane_depth(rays, np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, 1.0]), 4.0)
+    conf = NormalConf()
+    depth = DepthMap(z, "metric")
+    n = depth_to_normals(depth, cam, conf)
+    np.testing.assert_array_equal(n, estimate_normals(backproject(depth.to_depth(), rays), conf))
+    assert depth_to_normals(DepthMap(z[::2, ::2], "depth"), cam, conf).shape == (H // 2, W // 2, 3)
+    with pytest.raises(ValueError, match="resolve disparity first"):
+        depth_to_normals(DepthMap(1.0 / z, "disparity"), cam, conf)

@@ -1,13 +1,18 @@
 """Pipeline behaviour on views of a textured plane with known depth and homographies."""
 
+import types
+
 import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
+from rectified_colmap import pipeline
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.features import detect_sift
-from rectified_colmap.pipeline import extract_image
+from rectified_colmap.pipeline import extract_image, timed
+from rectified_colmap.planes import Patch
+from rectified_colmap.rectify import patch_evidence, patches_worth_rectifying
 from tests.conftest import look_at, plane_view, textured_image
 
 K = np.array([[420.0, 0, 240], [0, 420, 180], [0, 0, 1]])
@@ -131,9 +136,6 @@ def test_keep_plain_shares_the_budget_on_planes(texture):
 
 
 def test_patch_evidence_viewing_angle_and_texture():
-    from rectified_colmap.pipeline import patch_evidence, patches_worth_rectifying
-    from rectified_colmap.planes import Patch
-
     h, w = 36, 48  # work grid of the 480x360 camera (10 px cells)
     mask = np.zeros((h, w), bool)
     mask[17:19, 23:25] = True  # the 4 cells around the principal point (240, 180)
@@ -167,3 +169,31 @@ def test_frontal_plane_is_left_to_plain_sift_oblique_one_is_rectified(texture):
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
     res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
     assert len(res.rectifications) == 1 and (res.features.patch >= 0).sum() > 100
+
+
+def test_timed_adds_the_seconds_of_the_block_on_the_module_clock(monkeypatch):
+    ticks = iter([1.0, 3.5, 10.0, 10.25])
+    monkeypatch.setattr(pipeline, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks)))
+    t = {}
+    with timed(t, "a"):
+        pass
+    assert t == {"a": 2.5}
+    with timed(t, "a"):
+        pass
+    assert t == {"a": 2.75}
+
+
+def test_timings_keys(texture):
+    R, t = look_at([3.0, -0.5, 2.5], [0, 0, 0], up=(0, 1, 0))
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    res = extract_image(img, CAMERA, DepthMap(z, "metric"))
+    assert res.rectifications
+    assert list(res.timings) == [
+        "normals",
+        "planes",
+        "vp",
+        "homographies",
+        "sift_plain",
+        "warps+sift_patches",
+        "dedup",
+    ]

@@ -8,15 +8,15 @@ import pytest
 from rectified_colmap import camera as cam_utils
 from rectified_colmap import synth
 from rectified_colmap.config import ExtractConf, VpConf
-from rectified_colmap.features import detect_sift, keypoints_in_mask, split_budget
-from rectified_colmap.pipeline import (
-    extract_image,
-    plan_rectifications,
+from rectified_colmap.features import (
+    detect_sift,
+    keypoints_in_mask,
     rectification_budgets,
-    viewing_coverage,
-    viewing_masks,
+    split_budget,
 )
+from rectified_colmap.pipeline import extract_image
 from rectified_colmap.planes import Patch
+from rectified_colmap.rectify import rectifications_within_area, viewing_coverage, viewing_masks
 from rectified_colmap.vp import (
     VpResult,
     depth_free_planes,
@@ -316,8 +316,8 @@ def test_overlapping_patches_keep_their_resolution():
     mask = np.ones((H // 4, W // 4), bool)
     patch = Patch(mask, 0, np.array([0.8, 0.0, -0.6]), 1.0)
     conf = ExtractConf()
-    one = plan_rectifications(camera, [patch], [0], conf)
-    two = plan_rectifications(camera, [patch, patch], [0, 1], conf)
+    one = rectifications_within_area(camera, [patch], [0], conf.rectify)
+    two = rectifications_within_area(camera, [patch, patch], [0, 1], conf.rectify)
     assert len(one) == 1 and len(two) == 2
     assert one[0].size == two[0].size == two[1].size
 

@@ -67,12 +67,19 @@ class DepthMap:
         return None
 
     def to_depth(self, shift: float = 0.0) -> np.ndarray:
-        """z-depth (up to scale), NaN where invalid. For disparity, z = 1 / (p - shift)."""
-        v = self.values.astype(np.float32)
+        """z-depth (up to scale), NaN where invalid. For disparity, z = 1 / (p - shift)
+        (choosing the shift is a stage of its own: rectified_colmap.disparity)."""
         if self.kind == "disparity":
-            with np.errstate(divide="ignore", invalid="ignore"):
-                v = 1.0 / (v - np.float32(shift))
+            return disparity_to_depth(self.values, shift)
+        v = self.values
         return np.where(np.isfinite(v) & (v > 0), v, np.nan).astype(np.float32)
+
+
+def disparity_to_depth(disparity: np.ndarray, shift: float = 0.0) -> np.ndarray:
+    """z = 1 / (p - t) up to scale; NaN where p - t <= 0 or non-finite."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = 1.0 / (np.asarray(disparity, np.float32) - np.float32(shift))
+    return np.where(np.isfinite(z) & (z > 0), z, np.nan).astype(np.float32)
 
 
 class DepthSource(Protocol):

@@ -10,9 +10,9 @@ to bring them to its work grid. Output kinds: ``metric`` / ``depth`` / ``dispari
 the DepthMap kind of the same name; ``metric_canonical`` becomes ``metric``:
 out * f / canonical_focal with f the camera focal length (px) rescaled to the network input.
 
-Disparity (affine-invariant, p = s/z + t) is returned as kind ``disparity`` by default so
-that the pipeline applies ``DepthConf.disparity_shift``; ``shift='zero'|'orthogonal'``
-converts to ``depth`` inside the source instead (see :mod:`rectified_colmap.depth.shift`).
+Disparity (affine-invariant, p = s/z + t) is returned as it is, kind ``disparity``: choosing
+its shift is a stage of its own (:func:`rectified_colmap.disparity.resolve_disparity`, with
+``DepthConf.disparity_shift``).
 """
 
 from __future__ import annotations
@@ -31,8 +31,6 @@ from . import DepthMap
 from .contract import ModelSpec
 
 logger = logging.getLogger(__name__)
-
-SHIFTS = (None, "zero", "orthogonal")
 
 
 @dataclass
@@ -156,15 +154,13 @@ class OnnxDepthSource:
     ``spec``: contract to use when the file carries none (e.g. from the registry); the
     file's metadata and a sidecar JSON take precedence. ``providers``: onnxruntime
     execution providers (default CUDA when available, else CPU). ``num_threads``: intra-op
-    threads (None: onnxruntime's default). ``shift``: None (return disparity as is),
-    'zero' or 'orthogonal' (convert disparity to depth here)."""
+    threads (None: onnxruntime's default)."""
 
     def __init__(
         self,
         model_path: str | Path,
         providers: list[str] | None = None,
         num_threads: int | None = None,
-        shift: str | None = None,
         spec: ModelSpec | None = None,
         max_batch: int = 8,
     ):
@@ -173,9 +169,6 @@ class OnnxDepthSource:
         self.path = Path(model_path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{self.path}: ONNX depth model does not exist")
-        if shift not in SHIFTS:
-            raise ValueError(f"shift must be one of {SHIFTS}, got {shift!r}")
-        self.shift = shift
         self.max_batch = max(1, int(max_batch))
         opts = ort.SessionOptions()
         if num_threads:
@@ -274,17 +267,7 @@ class OnnxDepthSource:
                 raise ValueError(f"{self.path}: output 'metric_canonical' needs the camera")
             v = v * np.float32(input_focal(camera, g) / self.spec.canonical_focal)
             kind = "metric"
-        depth = DepthMap(v, kind)
-        if kind == "disparity" and self.shift is not None:
-            shift = 0.0
-            if self.shift == "orthogonal":
-                if camera is None:
-                    raise ValueError("shift='orthogonal' needs the camera")
-                from .shift import estimate_shift
-
-                shift = estimate_shift(depth.values, camera)
-            depth = DepthMap(depth.to_depth(shift), "depth")
-        return depth
+        return DepthMap(v, kind)
 
     def __call__(
         self, image: np.ndarray, camera: pycolmap.Camera | None = None, name: str | None = None

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .contract import IMAGENET_MEAN, IMAGENET_STD, ModelSpec
+from .onnx import OnnxDepthSource
 
 logger = logging.getLogger(__name__)
 
@@ -324,9 +325,7 @@ def resolve_model(name_or_path: str | Path, download_missing: bool = True) -> Pa
 
 def load_depth_source(name_or_path: str | Path, **kwargs):
     """OnnxDepthSource for a registry name or a path; ``kwargs`` go to OnnxDepthSource
-    (providers, num_threads, shift, ...). The registry's spec is the fallback contract."""
-    from .onnx import OnnxDepthSource
-
+    (providers, num_threads, ...). The registry's spec is the fallback contract."""
     path = resolve_model(name_or_path)
     entry = REGISTRY.get(str(name_or_path))
     if entry is not None and entry.spec is not None and "spec" not in kwargs:

@@ -119,7 +119,8 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
     import pycolmap
 
     from ..config import ExtractConf
-    from ..pipeline import depth_to_normals
+    from ..disparity import resolve_disparity
+    from ..normals import depth_to_normals
     from ..vp import manhattan_from_image
 
     conf = ExtractConf()
@@ -137,7 +138,8 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
                 continue  # no reference frame for this image
             axes = vp.directions[vp.snapped]
             rgb = np.ascontiguousarray(bgr[..., ::-1])
-            n = depth_to_normals(depth_for(path, rgb), camera, conf).reshape(-1, 3)
+            depth = resolve_disparity(depth_for(path, rgb), camera, conf)
+            n = depth_to_normals(depth, camera, conf.normals).reshape(-1, 3)
             n = n[np.isfinite(n).all(1)]
             dirs, _ = fit_dominant_directions(n, conf.planes, np.random.default_rng(0))
             cos = np.abs(n @ axes.T).max(1)
