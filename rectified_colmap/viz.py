@@ -4,6 +4,11 @@
 dominant direction, darker = antipode side), rectified regions outlined, keypoints as dots
 (white = plain SIFT, yellow = found in a rectified patch).
 ``<out>/<name>.patches.png``: the rectified patches side by side.
+
+Vanishing points (a vp.fusion.VpResult, e.g. for scripts/bench_vp.py): ``draw_segments``
+(segments coloured by frame row) and ``draw_directions`` (needles towards each direction's
+VP); ``save_png`` writes a BGR image. Colours: red/green/blue = frame rows (or directions)
+0/1/2; images in are grayscale (H, W) or RGB (H, W, 3) uint8, images out BGR (H, W, 3).
 """
 
 from __future__ import annotations
@@ -14,8 +19,10 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .conventions import to_opencv_points
+from . import camera as cam_utils
+from .conventions import pixel_centers, to_opencv_points
 from .rectify import warp_to_rectified
+from .vp.fusion import VpResult
 
 # label 2k + s -> BGR colour
 _COLOURS = np.array(
@@ -97,3 +104,74 @@ def save_visualizations(
         cv2.imwrite(str(p), mosaic)
         written.append(p)
     return written
+
+
+# -- vanishing points ---------------------------------------------------------------------
+
+_VP_BGR = np.array([[60, 60, 235], [60, 210, 60], [235, 130, 40]])  # red, green, blue
+
+
+def _bgr(image: np.ndarray) -> np.ndarray:
+    return (
+        cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if image.ndim == 2
+        else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    )
+
+
+def _cv_pt(xy: np.ndarray) -> tuple[int, int]:
+    p = np.round(to_opencv_points(xy) * 16).astype(int)  # 4 fractional bits
+    return int(p[0]), int(p[1])
+
+
+def draw_segments(image: np.ndarray, result: VpResult) -> np.ndarray:
+    """BGR image (darkened) with segments coloured by VP (red/green/blue = frame rows 0/1/2,
+    grey = none)."""
+    out = (_bgr(image) * 0.5).astype(np.uint8)
+    seg = result.segments
+    for xy, lab in zip(seg.xy, seg.labels):
+        colour = (150, 150, 150) if lab < 0 else tuple(int(c) for c in _VP_BGR[lab])
+        cv2.line(out, _cv_pt(xy[0]), _cv_pt(xy[1]), colour, 2, cv2.LINE_AA, shift=4)
+    return out
+
+
+def draw_directions(
+    image: np.ndarray,
+    camera: pycolmap.Camera,
+    result: VpResult,
+    depth_directions: np.ndarray | None = None,
+    grid: int = 6,
+) -> np.ndarray:
+    """BGR image with, at a grid of anchors, needles pointing to each direction's VP:
+    thick = fused directions (or the frame), thin white = the depth directions."""
+    out = (_bgr(image) * 0.6).astype(np.uint8)
+    W, H = camera.width, camera.height
+    length = 0.04 * max(W, H)
+    anchors = pixel_centers(grid, max(2, grid * H // W), W, H).reshape(-1, 2)
+    rays = cam_utils.image_to_rays(camera, anchors)
+
+    def needles(D, colours, thickness):
+        for d, colour in zip(D, colours):
+            tip = cam_utils.rays_to_image(camera, rays + 1e-3 * d)
+            u = tip - anchors
+            u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+            for p, q in zip(anchors - length * u, anchors + length * u):
+                if np.isfinite(p).all() and np.isfinite(q).all():
+                    cv2.line(out, _cv_pt(p), _cv_pt(q), colour, thickness, cv2.LINE_AA, shift=4)
+
+    D = result.directions if result.directions is not None else result.frame
+    if D is not None:
+        needles(D, [tuple(int(c) for c in col) for col in _VP_BGR], 3)
+    if depth_directions is not None:
+        needles(depth_directions, [(255, 255, 255)] * 3, 1)
+    return out
+
+
+def save_png(path: Path | str, image: np.ndarray) -> Path:
+    """Write a BGR (H, W, 3) or gray (H, W) uint8 image as PNG (parent folders created);
+    returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"{path}: cannot write PNG")
+    return path

@@ -33,6 +33,10 @@ LEVELS = {
     "planes": 3,
     "disparity": 4,  # disparity -> depth: choosing the shift fits normals and planes
     "vp": 4,  # vanishing points: refine / replace the plane directions
+    "vp.segments": 4,  # LSD segments on the Gaussian sphere
+    "vp.manhattan": 4,  # Manhattan frame, a-contrario trust test
+    "vp.fusion": 4,  # fusion with the depth directions, entry points, per-patch check
+    "vp.line_planes": 4,  # depth-free planes from line support (imports planes)
     "rectify": 5,
     "features": 6,
     "dedup": 7,
@@ -54,9 +58,9 @@ LEVELS = {
 # fails below).
 ALLOWED: set[tuple[str, str]] = set()
 
-# Scripts still putting the repository on sys.path (issue 14, item 6); they should run from
-# the installed package like the others.
-SYS_PATH_ALLOWED = {"bench_vp.py"}
+# Scripts still putting the repository on sys.path (issue 14, item 6; none left); they
+# should run from the installed package like the others.
+SYS_PATH_ALLOWED: set[str] = set()
 
 
 def _module_name(path: Path) -> str:

@@ -9,20 +9,18 @@ import pytest
 
 from rectified_colmap.camera import grid_rays, make_camera, rays_to_image
 from rectified_colmap.config import ExtractConf, VpConf
-from rectified_colmap.vp import (
-    Segments,
-    axis_log10_nfa,
+from rectified_colmap.viz import draw_directions, draw_segments, save_png
+from rectified_colmap.vp.fusion import (
     check_patch,
-    detect_segments,
-    draw_directions,
-    draw_segments,
-    fit_manhattan,
     fuse_directions,
-    log10_binomial_tail,
     manhattan_from_image,
     match_frame,
     refine_directions,
-    save_png,
+)
+from rectified_colmap.vp.manhattan import axis_log10_nfa, fit_manhattan, log10_binomial_tail
+from rectified_colmap.vp.segments import (
+    Segments,
+    detect_segments,
     segments_on_sphere,
     sin_errors,
 )
@@ -151,7 +149,7 @@ def test_gravity_prior_keeps_vertical_axis():
 
 
 def _frame(R, sigma=(0.1, 0.1, 0.1)):
-    from rectified_colmap.vp import ManhattanFrame
+    from rectified_colmap.vp.manhattan import ManhattanFrame
 
     return ManhattanFrame(
         R.copy(),

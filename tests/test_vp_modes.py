@@ -17,14 +17,13 @@ from rectified_colmap.features import (
 from rectified_colmap.pipeline import extract_image
 from rectified_colmap.planes import Patch
 from rectified_colmap.rectify import rectifications_within_area, viewing_coverage, viewing_masks
-from rectified_colmap.vp import (
-    VpResult,
+from rectified_colmap.vp.fusion import VpResult, manhattan_from_image
+from rectified_colmap.vp.line_planes import (
     depth_free_planes,
     line_support_patches,
-    manhattan_from_image,
-    Segments,
     whole_image_patches,
 )
+from rectified_colmap.vp.segments import Segments
 
 W, H = 480, 360
 

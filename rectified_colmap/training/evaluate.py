@@ -121,7 +121,7 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
     from ..config import ExtractConf
     from ..disparity import resolve_disparity
     from ..normals import depth_to_normals
-    from ..vp import manhattan_from_image
+    from ..vp.fusion import manhattan_from_image
 
     conf = ExtractConf()
     rows = []

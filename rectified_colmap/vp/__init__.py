@@ -1,0 +1,28 @@
+"""Vanishing points: line segments -> Manhattan frame -> fused dominant directions.
+
+Depth-derived normals say WHICH pixels form planes; line segments say HOW those planes are
+oriented, accurately even for far facades where depth is poor. This optional stage sits
+between plane clustering and rectification (Toft et al. 2020 name such a hybrid as future
+work). Method, measurements and decisions: docs/vp.md.
+
+Modules, in data-flow order (each states its inputs, outputs and conventions):
+
+- ``segments``: LSD segments of the image (COLMAP pixels) and their interpretation planes
+  on the Gaussian sphere of the camera (``Segments``, ``detect_segments``,
+  ``segments_on_sphere``, ``sin_errors``).
+- ``manhattan``: the Manhattan frame (RANSAC + Gauss-Newton) and its a-contrario trust test
+  (``ManhattanFrame``, ``fit_manhattan``, ``axis_log10_nfa``, ``log10_binomial_tail``).
+- ``fusion``: frame axes fused with the depth directions, the entry points and the
+  per-patch check (``VpResult``, ``match_frame``, ``fuse_directions``,
+  ``refine_directions``, ``manhattan_from_image``, ``PatchCheck``, ``check_patch``).
+- ``line_planes``: depth-free planes from line support (``line_support_patches``,
+  ``whole_image_patches``, ``depth_free_planes``).
+
+Drawing (``draw_segments``, ``draw_directions``) is in rectified_colmap.viz. The names below
+are re-exported for the pipeline and tools; new code may import from the modules.
+"""
+
+from .fusion import VpResult, manhattan_from_image, refine_directions
+from .line_planes import depth_free_planes
+
+__all__ = ["VpResult", "depth_free_planes", "manhattan_from_image", "refine_directions"]

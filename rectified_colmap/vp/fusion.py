@@ -1,0 +1,273 @@
+"""Fusion of the line-derived Manhattan frame with the depth network's directions, and the
+stage's entry points.
+
+Input: the grayscale image (H, W) uint8, its camera, and the dominant directions (3, 3) of
+rectified_colmap.planes (rows, or None). Output: a ``VpResult``: fused directions (rows in
+the input order, still a rotation), per direction whether it snapped to or contradicts a
+frame axis, and the frame and segments behind it. Conventions: vp.segments (pixels, the
+sphere) and vp.manhattan (frames).
+
+``refine_directions`` is the pipeline's entry point (segments -> frame -> fused
+directions); ``manhattan_from_image`` is the depth-free one (the frame itself);
+``check_patch`` asks whether one patch's own lines agree with its normal.
+
+Fusion (``fuse_directions``): depth directions are matched to frame axes (best signed
+permutation); a direction snaps when a confident frame axis (sigma <= max_sigma_deg) lies
+within snap_angle_deg of it, and is contradicted when a confident axis lies further. The
+output stays a rotation: with 2-3 snapped directions it is the matched frame; with one,
+the depth frame rotated minimally onto it; with none, the depth frame unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from itertools import permutations
+
+import numpy as np
+import pycolmap
+
+from ..config import VpConf
+from .manhattan import ManhattanFrame, _rotvec_matrix, fit_manhattan
+from .segments import Segments, _unit, detect_segments, segments_on_sphere
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class VpResult:
+    directions: np.ndarray | None
+    """(3, 3) fused directions (rows in the order of the input directions), or None."""
+    snapped: np.ndarray
+    """(3,) bool: the direction was replaced by a line-derived one."""
+    support: np.ndarray
+    """(3,) length fraction of the segments supporting the frame axis matched to each
+    direction (0 where unmatched)."""
+    frame: np.ndarray | None
+    """(3, 3) the Manhattan frame from lines (rows ordered by support), or None."""
+    segments: Segments
+    sigma_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))
+    """(3,) uncertainty of the frame axis matched to each direction."""
+    contradicted: np.ndarray = field(default_factory=lambda: np.zeros(3, bool))
+    """(3,) bool: a confident frame axis disagrees with the direction by > snap angle."""
+    angle_change_deg: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """(3,) angle between input and output directions."""
+    manhattan: ManhattanFrame | None = None
+
+
+def match_frame(directions: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed permutation of the frame rows best matching the directions (rows).
+
+    Returns (perm (3,), signs (3,)): direction k matches signs[k] * frame[perm[k]]."""
+    C = np.asarray(directions) @ np.asarray(frame).T
+    best = max(permutations(range(3)), key=lambda p: np.abs(C[[0, 1, 2], list(p)]).sum())
+    perm = np.array(best)
+    signs = np.where(C[[0, 1, 2], perm] < 0, -1.0, 1.0)
+    return perm, signs
+
+
+# _angle_deg and _min_rotation duplicate geometry.angle_deg and geometry.smallest_rotation
+# but round differently (einsum vs a sum of products; cv2.Rodrigues vs the explicit formula:
+# last bits differ on about half of random inputs), and _min_rotation returns the identity
+# for antiparallel a, b. They stay until a commit of its own changes the values (issue 14).
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles (...) in degrees between unit vectors a, b (..., 3)."""
+    return np.degrees(np.arccos(np.clip(np.einsum("...i,...i->...", a, b), -1.0, 1.0)))
+
+
+def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation (3, 3) taking unit a (3,) onto unit b (3,) (identity when they are
+    (anti)parallel)."""
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis)
+    if s < 1e-12:
+        return np.eye(3)
+    return _rotvec_matrix(axis / s * np.arctan2(s, float(a @ b)))
+
+
+def fuse_directions(
+    directions: np.ndarray, mf: ManhattanFrame, conf: VpConf = VpConf()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Depth directions + Manhattan frame -> fused directions (module docstring).
+
+    Args:
+        directions: (3, 3) rows, e.g. planes.PlaneResult.directions.
+        mf: the frame from fit_manhattan.
+        conf: ``max_sigma_deg``, ``snap_angle_deg``.
+    Returns:
+        (directions (3, 3), snapped (3,) bool, contradicted (3,) bool, support (3,),
+        sigma_deg (3,)), all per input direction (support and sigma of the matched axis).
+    """
+    D = np.asarray(directions, np.float64)
+    if mf.frame is None:
+        return D.copy(), np.zeros(3, bool), np.zeros(3, bool), np.zeros(3), np.full(3, np.inf)
+    perm, signs = match_frame(D, mf.frame)
+    Fm = mf.frame[perm] * signs[:, None]
+    sigma, support = mf.sigma_deg[perm], mf.support[perm]
+    ang = _angle_deg(D, Fm)
+    confident = sigma <= conf.max_sigma_deg
+    snapped = confident & (ang <= conf.snap_angle_deg)
+    contradicted = confident & ~snapped
+    out = D.copy()
+    idx = np.flatnonzero(snapped)
+    if len(idx) >= 2:
+        out = Fm.copy()
+        if len(idx) == 3 and np.linalg.det(out) > 0:
+            pass
+        else:  # complete the frame from the two best determined snapped rows
+            a, b = idx[np.argsort(sigma[idx])[:2]]
+            k = 3 - a - b
+            out[k] = np.cross(out[(k + 1) % 3], out[(k + 2) % 3])
+    elif len(idx) == 1:
+        k = idx[0]
+        out = D @ _min_rotation(D[k], Fm[k]).T
+    return out, snapped, contradicted, support, sigma
+
+
+def refine_directions(
+    image_gray: np.ndarray,
+    camera: pycolmap.Camera,
+    directions: np.ndarray | None,
+    conf: VpConf = VpConf(),
+    gravity: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> VpResult:
+    """The pipeline's entry point: segments -> Manhattan frame -> fused directions.
+
+    Never raises on scenes without lines: nothing snaps.
+
+    Args:
+        image_gray: (H, W) uint8 matching the camera's size.
+        camera: the image's camera.
+        directions: (3, 3) rows from rectified_colmap.planes, or None: then the result only
+            carries the frame and its directions stay None.
+        conf: VpConf.
+        gravity: optional (3,) camera-frame unit vector (fit_manhattan).
+        rng: RANSAC's generator (default: seeded by conf.seed).
+    Returns:
+        VpResult (per-direction arrays (3,) in the order of ``directions``).
+    """
+    img = np.asarray(image_gray)
+    if img.shape[:2] != (camera.height, camera.width):
+        raise ValueError(
+            f"refine_directions: image is {img.shape[1]}x{img.shape[0]} but its "
+            f"camera is {camera.width}x{camera.height}"
+        )
+    seg = segments_on_sphere(camera, detect_segments(img, conf))
+    mf = fit_manhattan(seg, conf, gravity, rng)
+    seg.labels = mf.labels
+    if directions is None:
+        return VpResult(None, np.zeros(3, bool), np.zeros(3), mf.frame, seg, manhattan=mf)
+    D = np.asarray(directions, np.float64)
+    out, snapped, contra, support, sigma = fuse_directions(D, mf, conf)
+    change = _angle_deg(D, out)
+    logger.debug(
+        "vp: %d segments, frame support %s sigma %s, snapped %s, change %s deg",
+        len(seg),
+        np.round(mf.support, 2),
+        np.round(mf.sigma_deg, 2),
+        snapped,
+        np.round(change, 1),
+    )
+    return VpResult(out, snapped, support, mf.frame, seg, sigma, contra, change, mf)
+
+
+def manhattan_from_image(
+    image_gray: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: VpConf = VpConf(),
+    gravity: np.ndarray | None = None,
+    rng: np.random.Generator | None = None,
+) -> VpResult:
+    """Depth-free mode: the line-derived frame as the dominant directions.
+
+    Args:
+        image_gray, camera, conf, gravity, rng: as refine_directions.
+    Returns:
+        VpResult whose ``directions`` (3, 3) is the frame (rows by support, like
+        planes.fit_dominant_directions) when at least two of its axes are confident
+        (sigma <= conf.max_sigma_deg), else None; ``snapped`` (3,) marks the confident
+        axes; ``support`` and ``sigma_deg`` (3,) are the frame's.
+    """
+    res = refine_directions(image_gray, camera, None, conf, gravity, rng)
+    mf = res.manhattan
+    confident = mf.sigma_deg <= conf.max_sigma_deg
+    res.snapped = confident
+    res.support = mf.support.copy()
+    res.sigma_deg = mf.sigma_deg.copy()
+    res.directions = mf.frame.copy() if mf.frame is not None and confident.sum() >= 2 else None
+    return res
+
+
+# -- per patch ----------------------------------------------------------------------------
+
+
+@dataclass
+class PatchCheck:
+    num_segments: int
+    """Segments with a VP label whose midpoint lies in the patch."""
+    inplane_frac: float
+    """Length fraction of them whose VP is (within snap_angle_deg) in the patch's plane."""
+    line_normal: np.ndarray | None
+    """Normal implied by the two VPs with the most segment length in the patch (each with at
+    least max(2, conf.patch_min_segments // 2) segments), signed like ``normal``; None
+    without two such line families."""
+    angle_deg: float
+    """Angle between line_normal and the patch normal (nan without line_normal)."""
+    consistent: bool | None
+    """With line_normal: angle_deg <= conf.snap_angle_deg. Else, with at least
+    conf.patch_min_segments segments: inplane_frac >= conf.patch_min_inplane_frac. Else
+    None (no verdict)."""
+
+
+def check_patch(
+    result: VpResult,
+    mask: np.ndarray,
+    normal: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: VpConf = VpConf(),
+) -> PatchCheck:
+    """Do the patch's own lines agree with its normal?
+
+    Lines lying on a plane vanish on its vanishing line, so the VPs of the patch's segments
+    must be orthogonal to its normal.
+
+    Args:
+        result: a VpResult with its frame and labelled segments.
+        mask: (h, w) bool on any grid covering the image (e.g. the work grid of
+            planes.Patch).
+        normal: (3,) the patch normal.
+        camera: the image's camera (its size maps segment midpoints onto the grid).
+        conf: ``snap_angle_deg``, ``patch_min_segments``, ``patch_min_inplane_frac``.
+    Returns:
+        PatchCheck.
+    """
+    seg, F = result.segments, result.frame
+    n = _unit(np.asarray(normal, np.float64))
+    if F is None or len(seg) == 0:
+        return PatchCheck(0, float("nan"), None, float("nan"), None)
+    h, w = mask.shape
+    mid = seg.xy.mean(1)
+    col = np.clip((mid[:, 0] * w / camera.width).astype(int), 0, w - 1)
+    row = np.clip((mid[:, 1] * h / camera.height).astype(int), 0, h - 1)
+    inside = mask[row, col] & (seg.labels >= 0)
+    num = int(inside.sum())
+    if num == 0:
+        return PatchCheck(0, float("nan"), None, float("nan"), None)
+    lab, L = seg.labels[inside], seg.lengths[inside]
+    inplane_axis = np.abs(F @ n) < np.sin(np.deg2rad(conf.snap_angle_deg))
+    frac = float(L[inplane_axis[lab]].sum() / L.sum())
+    counts = np.bincount(lab, minlength=3)
+    families = np.flatnonzero(counts >= max(2, conf.patch_min_segments // 2))
+    line_normal, angle, verdict = None, float("nan"), None
+    if len(families) >= 2:
+        length = np.bincount(lab, weights=L, minlength=3)
+        a, b = families[np.argsort(-length[families])[:2]]
+        line_normal = _unit(np.cross(F[a], F[b]))
+        if line_normal @ n < 0:
+            line_normal = -line_normal
+        angle = float(_angle_deg(line_normal, n))
+        verdict = angle <= conf.snap_angle_deg
+    elif num >= conf.patch_min_segments:
+        verdict = frac >= conf.patch_min_inplane_frac
+    return PatchCheck(num, frac, line_normal, angle, verdict)
