@@ -61,7 +61,7 @@ def test_depth_free_patches_have_gt_normals_and_face_the_camera(views):
     patch area; a few small patches at plane junctions take a wrong axis), face the camera,
     and cover a useful part of the images. Two of the 8 views (ground targets: tiled ground
     and smooth walls, few sharp lines) have no two axes that pass the chance-level test
-    (vp.axis_log10_nfa): no frame, no patches."""
+    (vp.manhattan.axis_log10_nfa): no frame, no patches."""
     conf = _depth_free_conf()
     good, total, coverage, frameless = 0, 0, [], 0
     for r, camera in views:
