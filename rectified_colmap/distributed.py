@@ -23,6 +23,10 @@ from __future__ import annotations
 import hashlib
 import logging
 import re
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .extract.run import WorkerInit
 
 logger = logging.getLogger(__name__)
 
@@ -64,12 +68,13 @@ def _import_ray():
 
 class RayRunner:
     """Runs extraction jobs on Ray actors; a callable like the local runners of
-    rectified_colmap.extract: ``runner(jobs, conf, keep)`` yields the per-image results
-    in job order. ``address``: a Ray cluster address, or "local" / "" for a local instance
-    (started here, stopped by :meth:`close`). ``num_workers`` actors (1 CPU each); 1 or
-    less means one per CPU of the cluster."""
+    rectified_colmap.extract.run: ``runner(jobs, conf, keep)`` yields the per-image
+    outcomes in job order. ``address``: a Ray cluster address, or "local" / "" for a local
+    instance (started here, stopped by :meth:`close`). ``num_workers`` actors (1 CPU each);
+    1 or less means one per CPU of the cluster. ``init``: what each actor builds its
+    extract.run.Worker from."""
 
-    def __init__(self, address: str | None, num_workers: int, init: tuple):
+    def __init__(self, address: str | None, num_workers: int, init: WorkerInit):
         self.ray = _import_ray()
         self.address = None if address in (None, "", "local") else address
         self.num_workers = int(num_workers)
@@ -106,7 +111,7 @@ class RayRunner:
         actor = ray.remote(num_cpus=1)(_Worker)
         pool = ActorPool([actor.remote(self.init) for _ in range(n)])
         conf_ref = ray.put(conf)
-        yield from pool.map(lambda a, job: a.process.remote(*job, conf_ref, keep), jobs)
+        yield from pool.map(lambda a, job: a.process.remote(job, conf_ref, keep), jobs)
 
     def close(self) -> None:
         if self._started:
@@ -116,14 +121,12 @@ class RayRunner:
 
 class _Worker:
     """A Ray actor: one worker process's depth sources and SIFT extractor, kept across
-    images (the same state a local worker process holds)."""
+    images (the same state a local worker process holds: extract.run.Worker)."""
 
-    def __init__(self, init: tuple):
-        from .extract import _init_worker
+    def __init__(self, init: WorkerInit):
+        from .extract.run import Worker
 
-        _init_worker(*init)
+        self.worker = Worker(init)
 
-    def process(self, name, path, camera, conf, keep):
-        from .extract import _process
-
-        return _process(name, path, camera, conf, keep)
+    def process(self, job, conf, keep):
+        return self.worker.process(job, conf, keep)

@@ -1,6 +1,7 @@
 """End-to-end `rectified-colmap extract` on plane views with known depth."""
 
 import sqlite3
+from pathlib import Path
 
 import cv2
 import h5py
@@ -167,3 +168,43 @@ def test_cli_rejects_params_without_model(scene, tmp_path, caplog):
     )
     assert "--camera_params needs --camera_model" in caplog.text
     assert not (tmp_path / "x.db").exists()
+
+
+@pytest.mark.parametrize("camera", ["params", "exif"])
+def test_each_image_is_decoded_once(scene, tmp_path, monkeypatch, camera):
+    """One decode of each image in a whole extraction: the camera's size comes from the
+    file header, the worker decodes, the pictures reuse its pixels. A camera from EXIF is
+    read by pycolmap (COLMAP's own EXIF rules), once per new camera, never without."""
+    import pycolmap
+
+    images, depths = scene
+    names = ["sub/0.png", "sub/1.png", "sub/2.png"]
+    decodes, exif = [], []
+    imread, infer = cv2.imread, pycolmap.infer_camera_from_image
+
+    def counting_imread(path, *args):
+        decodes.append(Path(path).relative_to(images).as_posix())
+        return imread(path, *args)
+
+    def counting_infer(path, *args):
+        exif.append(Path(path).relative_to(images).as_posix())
+        return infer(path, *args)
+
+    monkeypatch.setattr(cv2, "imread", counting_imread)
+    monkeypatch.setattr(pycolmap, "infer_camera_from_image", counting_infer)
+    kw = dict(camera_model="PINHOLE", camera_params=PARAMS) if camera == "params" else {}
+    s = extract(
+        images,
+        database=tmp_path / "db.db",
+        hloc_features=tmp_path / "f.h5",
+        image_list=names,
+        depth_path=depths,
+        depth_model="none",
+        visualize=tmp_path / "viz",
+        progress=False,
+        **kw,
+    )
+    assert s.ok and sorted(s.done) == names
+    assert len(list((tmp_path / "viz").glob("*.planes.png"))) == 3  # the pictures were drawn
+    assert sorted(decodes) == names
+    assert sorted(exif) == ([] if camera == "params" else names)

@@ -1,0 +1,231 @@
+"""Plan step of extraction: which images, with which cameras, and what is already done.
+
+:func:`select_images` lists the folder (or the list) and keeps this job's shard.
+:func:`plan` goes once over the images against the outputs: an image with features in
+every output is skipped; one with features in only one output gets a copy in the other
+right away (rectified_colmap.extract.write, never re-extracted, unless ``overwrite``); the
+rest are returned with their cameras for the run step. Cameras come from the database (an
+image already there keeps its camera), from ``camera_model``/``camera_params`` (the size
+read from the file header, no decode) or from EXIF (pycolmap.infer_camera_from_image,
+which reads the file itself).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import pycolmap
+
+from .. import camera as cam_utils
+from ..config import DEFAULT_CAMERA_MODEL
+from ..io.images import ImageError, image_size, list_images
+from .summary import Summary, error_message
+from .write import copy_db_to_h5, copy_h5_to_db
+
+logger = logging.getLogger(__package__)
+
+
+@dataclass
+class PlannedCamera:
+    """A camera of the run; ``camera_id`` stays None until its first image is written
+    (the camera row goes into that image's transaction: no orphan camera rows)."""
+
+    camera: pycolmap.Camera
+    prior: bool
+    camera_id: int | None = None
+
+
+@dataclass(frozen=True)
+class CameraArgs:
+    """How new cameras are made: COLMAP's ``model`` and ``params``, ``single`` (one camera
+    shared by all new images, COLMAP's --ImageReader.single_camera)."""
+
+    model: str | None = None
+    params: list[float] | None = None
+    single: bool = False
+
+    @classmethod
+    def checked(cls, model: str | None, params, single: bool) -> CameraArgs:
+        """Parses 'p1,p2,...' params; one-line errors for a bad --camera_model /
+        --camera_params, before anything runs."""
+        if isinstance(params, str):
+            params = cam_utils.parse_camera_params(params)
+        if params and not model:
+            raise ValueError("--camera_params needs --camera_model")
+        if model:
+            cam_utils.num_params(model)  # raises for an unknown model
+            if params:
+                cam_utils.make_camera(model, params, 100, 100)
+        return cls(model, params, bool(single))
+
+    def new_camera(self, path: Path) -> PlannedCamera:
+        """The camera of a new image: from the params and the header's size, or EXIF."""
+        if self.model and self.params:
+            w, h = image_size(path)
+            return PlannedCamera(cam_utils.make_camera(self.model, self.params, w, h), True)
+        if not path.is_file():
+            raise ImageError("no such image file")
+        try:
+            cam, has_prior = cam_utils.infer_camera(path, self.model or DEFAULT_CAMERA_MODEL)
+        except ValueError:
+            raise ImageError("cannot decode image (corrupt or unsupported format)") from None
+        return PlannedCamera(cam, has_prior)
+
+
+def select_images(
+    image_dir: Path, image_list: Path | list[str] | None, shard: str | tuple[int, int] | None
+) -> list[str]:
+    """The names to process: the folder's images (or the list's), this shard's share."""
+    names = list_images(image_dir, image_list)
+    if shard is not None:
+        from ..distributed import parse_shard, shard_names
+
+        index, count = parse_shard(shard)
+        names = shard_names(names, index, count)
+        logger.info("shard %d/%d: %d image(s)", index, count, len(names))
+    return names
+
+
+def plan(
+    names: list[str],
+    image_dir: Path,
+    db,
+    h5,
+    cameras: CameraArgs,
+    overwrite: bool,
+    summary: Summary,
+) -> dict[str, PlannedCamera]:
+    """Decide per image: skip, copy between outputs (done here), or extract. Per-image
+    problems go to ``summary.failed``. Returns the images to extract with their cameras."""
+    planner = _Planner(image_dir, db, h5, cameras, overwrite, summary)
+    todo: dict[str, PlannedCamera] = {}
+    for name in names:
+        try:
+            camera = planner.image(name)
+        except Exception as e:
+            logger.debug("planning %s", name, exc_info=True)
+            summary.fail(name, error_message(e))
+            continue
+        if camera is not None:
+            todo[name] = camera
+    planner.report()
+    return todo
+
+
+def _first(names: list[str]) -> str:
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+
+
+class _Planner:
+    """The state of one pass of :func:`plan`: cameras met so far, and what its closing
+    warnings report (guessed focal lengths, foreign features, matches to delete)."""
+
+    def __init__(self, image_dir, db, h5, cameras: CameraArgs, overwrite, summary):
+        self.image_dir, self.db, self.h5 = image_dir, db, h5
+        self.args, self.overwrite, self.summary = cameras, overwrite, summary
+        self.shared: PlannedCamera | None = None
+        self.known: dict[int, PlannedCamera] = {}  # database cameras by id
+        self.ours = db.ours() if db is not None else set()
+        self.foreign_h5 = h5.foreign() if h5 is not None else set()
+        self.guessed: list[str] = []
+        self.foreign_db: list[str] = []
+        self.foreign_in_h5: list[str] = []
+        self.replaced: list[int] = []
+
+    def image(self, name: str) -> PlannedCamera | None:
+        """The camera to extract ``name`` with, or None when it is skipped or copied."""
+        db, h5 = self.db, self.h5
+        found = db.find_image(name) if db is not None else None  # (image_id, camera_id)
+        in_db = found is not None and db.has_features(found[0])
+        in_h5 = h5 is not None and h5.has(name)
+        if in_db and found[0] not in self.ours:
+            self.foreign_db.append(name)
+        if in_h5 and name in self.foreign_h5:
+            self.foreign_in_h5.append(name)
+        if found is not None:
+            known = self._db_camera(found[1])
+            if self.args.single and self.shared is None:  # resumed run
+                self.shared = known
+        if not self.overwrite:
+            if (db is None or in_db) and (h5 is None or in_h5):
+                self.summary.skipped.append(name)
+                return None
+            if in_db:  # the hloc file lacks it: the database's features, as they are
+                cam = self.known[found[1]].camera
+                copy_db_to_h5(db, h5, name, found[0], cam, found[0] in self.ours)
+                self.summary.copied[name] = "database -> hloc"
+                return None
+        elif in_db:
+            self.replaced.append(found[0])
+        camera = self.known[found[1]] if found is not None else self._new_camera(name)
+        if in_h5 and not self.overwrite:  # the database lacks it: the hloc file's features
+            copy_h5_to_db(db, h5, name, camera, name not in self.foreign_h5)
+            self.summary.copied[name] = "hloc -> database"
+            return None
+        return camera
+
+    def _db_camera(self, camera_id: int) -> PlannedCamera:
+        """The database's camera ``camera_id``, read once."""
+        if camera_id not in self.known:
+            cam = self.db.get_camera(camera_id)
+            self.known[camera_id] = PlannedCamera(cam, cam.has_prior_focal_length, camera_id)
+        return self.known[camera_id]
+
+    def _new_camera(self, name: str) -> PlannedCamera:
+        """The camera of an image not in the database: the shared one (same size
+        required) or a new one."""
+        path = self.image_dir / name
+        shared = self.shared
+        if self.args.single and shared is not None:
+            w, h = image_size(path)
+            if (w, h) != (shared.camera.width, shared.camera.height):
+                raise ImageError(
+                    f"{w}x{h} differs from the single camera's "
+                    f"{shared.camera.width}x{shared.camera.height}"
+                )
+            return shared
+        camera = self.args.new_camera(path)
+        if not camera.prior:
+            self.guessed.append(name)
+        if self.args.single:
+            self.shared = camera
+        return camera
+
+    def report(self) -> None:
+        """The plan's warnings, each once for all images; the counts into the summary."""
+        if self.guessed:
+            logger.warning(
+                "%d image(s) have no focal length in EXIF (%s): guessing 1.2 x the "
+                "larger side, as COLMAP does. Pass --camera_model/--camera_params "
+                "for better planes.",
+                len(self.guessed),
+                _first(self.guessed),
+            )
+        for output, found in ((self.db, self.foreign_db), (self.h5, self.foreign_in_h5)):
+            if found:
+                self.summary.foreign[str(output.path)] = len(found)
+                if not self.overwrite:
+                    logger.warning(
+                        "%s: %d image(s) have features from another extractor (%s); "
+                        "kept as they are (--overwrite replaces them)",
+                        output.path,
+                        len(found),
+                        _first(found),
+                    )
+        if self.replaced:
+            self._report_replaced()
+
+    def _report_replaced(self) -> None:
+        n_matches, n_geoms = self.db.count_matches(self.replaced)
+        self.summary.deleted_matches = (n_matches, n_geoms)
+        if n_matches or n_geoms:
+            logger.warning(
+                "--overwrite: re-extracting %d image(s) of %s deletes %d match and "
+                "%d two-view geometry rows that refer to their old keypoints",
+                len(self.replaced),
+                self.db.path,
+                n_matches,
+                n_geoms,
+            )

@@ -1,0 +1,209 @@
+"""Run step of extraction: the per-image work, one :class:`Outcome` per job, in job order.
+
+A :class:`Worker` holds what a process keeps across images (its depth sources, the
+network loaded once) and processes one image: decode it (the only decode of its pixels in
+the whole extraction), find its depth, run ``pipeline.extract_image``. Runners give it the
+jobs: :class:`HereRunner` in this process, :class:`PoolRunner` in worker processes, and
+rectified_colmap.distributed.RayRunner on Ray actors; each is a callable
+``runner(jobs, conf, keep)`` yielding outcomes in job order, with an optional ``close()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import pycolmap
+
+from ..config import ExtractConf
+from ..io.images import ImageError, decode_image
+from ..pipeline import ImageResult, extract_image
+from .summary import error_message
+
+logger = logging.getLogger(__package__)
+
+
+def quiet_pycolmap() -> None:
+    """pycolmap's INFO lines (one per SIFT extractor) would interleave with the progress
+    bar; keep its warnings unless our own log level is DEBUG."""
+    if logging.getLogger("rectified_colmap").getEffectiveLevel() > logging.DEBUG:
+        pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 1)
+
+
+class Job(NamedTuple):
+    name: str
+    path: Path
+    """Absolute: workers may run elsewhere (another process, a Ray node)."""
+    camera: pycolmap.Camera
+
+
+@dataclass
+class Outcome:
+    """What a worker sends back for one image; messages without the image's name."""
+
+    name: str
+    result: ImageResult | None = None
+    origin: str = "none"
+    """Where the depth came from: "files", "network" or "none"."""
+    error: str | None = None
+    warnings: list[str] = field(default_factory=list)
+    rgb: np.ndarray | None = None
+    """The decoded image, kept (with the result's details) for the visualisation."""
+
+
+@dataclass(frozen=True)
+class WorkerInit:
+    """What a worker builds its depth sources from (sent to worker processes and actors)."""
+
+    depth_path: Path | None
+    depth_kind: str
+    png_scale: float
+    depth_model: str | None
+    model_threads: int | None
+    """Threads of the depth network; None: its default (one process does everything)."""
+
+    def depth_sources(self) -> dict:
+        """{"files": FileDepthSource | None, "network": OnnxDepthSource | None}; raises
+        with a one-line message naming the folder or model when one cannot be used."""
+        sources = {"files": None, "network": None}
+        if self.depth_path is not None:
+            from ..depth.files import FileDepthSource
+
+            sources["files"] = FileDepthSource(
+                self.depth_path, kind=self.depth_kind, png_scale=self.png_scale
+            )
+        if self.depth_model not in (None, "none"):
+            sources["network"] = self._network()
+        return sources
+
+    def _network(self):
+        from ..depth.registry import load_depth_source
+
+        try:
+            return load_depth_source(self.depth_model, num_threads=self.model_threads)
+        except Exception as e:  # unknown name, missing or corrupt file, onnxruntime errors
+            msg = str(e)
+            if str(self.depth_model) not in msg:
+                msg = f"depth model {self.depth_model}: {msg}"
+            raise ValueError(f"--depth_model: {msg}") from e
+
+
+class Worker:
+    """One process's state across images: one OpenCV thread, quiet pycolmap, its depth
+    sources (``sources`` when given, else built from ``init``)."""
+
+    def __init__(self, init: WorkerInit, sources: dict | None = None):
+        cv2.setNumThreads(1)
+        quiet_pycolmap()
+        self.sources = sources if sources is not None else init.depth_sources()
+
+    def process(self, job: Job, conf: ExtractConf, keep: bool) -> Outcome:
+        """Decode, depth, extract; an error becomes the outcome's message (the run goes
+        on). ``keep``: keep the result's details and the pixels (for the pictures)."""
+        out = Outcome(job.name)
+        try:
+            rgb, out.warnings = decode_image(job.path)
+            H, W = rgb.shape[:2]
+            if (W, H) != (job.camera.width, job.camera.height):
+                raise ImageError(
+                    f"image is {W}x{H} but its camera is {job.camera.width}x{job.camera.height}"
+                )
+            depth, out.origin = self._depth(rgb, job, out.warnings)
+            rng = np.random.default_rng(_seed(job.name))
+            result = extract_image(rgb, job.camera, depth, conf, rng)
+        except Exception as e:  # reported per image; the run goes on
+            logger.debug("failure on %s", job.name, exc_info=True)
+            out.error, out.origin = error_message(e), "none"
+            return out
+        if keep:
+            out.result, out.rgb = result, rgb
+        else:
+            out.result = ImageResult(result.features, timings=result.timings)
+        return out
+
+    def _depth(self, rgb: np.ndarray, job: Job, warnings: list[str]):
+        """-> (depth, origin): a depth file's, else the network's; unusable ones are
+        ignored with a warning."""
+        for kind in ("files", "network"):
+            source = self.sources.get(kind)
+            if source is None:
+                continue
+            depth = source(rgb, job.camera, job.name)
+            problem = None if depth is None else depth.problem()
+            if problem is None and depth is not None:
+                return depth, kind
+            if problem is not None:
+                what = "depth file" if kind == "files" else "depth network"
+                warnings.append(f"unusable depth from the {what} ({problem}): ignored")
+        return None, "none"
+
+
+def _seed(name: str) -> int:
+    """The image's random seed: from its name, the same in any worker and any run."""
+    return int.from_bytes(name.encode()[-8:].rjust(8, b"\0"), "little") % (2**32)
+
+
+def make_runner(init: WorkerInit, num_workers: int, ray_address: str | None):
+    """The runner for these settings. The depth sources are built here first, so that a
+    bad depth folder or model fails before any output is touched (parallel workers then
+    build their own)."""
+    sources = init.depth_sources()
+    if ray_address is not None:
+        from ..distributed import RayRunner
+
+        return RayRunner(ray_address, num_workers, init)  # fails here without Ray
+    if num_workers > 1:
+        return PoolRunner(num_workers, init)
+    return HereRunner(init, sources)
+
+
+class HereRunner:
+    """Runs the jobs in this process, one Worker for all of them."""
+
+    def __init__(self, init: WorkerInit, sources: dict | None = None):
+        self.init, self.sources = init, sources
+
+    def __call__(self, jobs: list[Job], conf: ExtractConf, keep: bool):
+        worker = Worker(self.init, self.sources)
+        for job in jobs:
+            yield worker.process(job, conf, keep)
+
+
+class PoolRunner:
+    """Runs the jobs in ``num_workers`` local processes, one Worker each (a single job
+    runs here)."""
+
+    def __init__(self, num_workers: int, init: WorkerInit):
+        self.num_workers, self.init = num_workers, init
+
+    def __call__(self, jobs: list[Job], conf: ExtractConf, keep: bool):
+        if len(jobs) <= 1:
+            yield from HereRunner(self.init)(jobs, conf, keep)
+            return
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        with ProcessPoolExecutor(
+            self.num_workers, initializer=_start_pool_worker, initargs=(self.init,)
+        ) as ex:
+            futures = [ex.submit(_pool_process, job, conf, keep) for job in jobs]
+            for fut in futures:
+                yield fut.result()
+
+
+_pool_worker: Worker | None = None
+"""The Worker of a pool process, made by the pool's initializer in that process only
+(the caller's process never sets it; its runner holds its own Worker)."""
+
+
+def _start_pool_worker(init: WorkerInit) -> None:
+    global _pool_worker
+    _pool_worker = Worker(init)
+
+
+def _pool_process(job: Job, conf: ExtractConf, keep: bool) -> Outcome:
+    return _pool_worker.process(job, conf, keep)
