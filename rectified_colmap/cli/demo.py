@@ -14,10 +14,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     from ..config import DEFAULT_DEPTH_MODEL
 
     p = sub.add_parser("demo", help="run the whole job on a rendered street (no data needed)")
-    p.add_argument("--output", type=Path, default=Path("demo"))
-    p.add_argument("--num_images", type=int, default=8)
-    p.add_argument("--depth_model", default=DEFAULT_DEPTH_MODEL)
-    p.add_argument("--num_workers", type=int, default=1)
+    p.add_argument(
+        "--output",
+        type=Path,
+        default=Path("demo"),
+        help="output folder: renders, database, features, model (default %(default)s)",
+    )
+    p.add_argument("--num_images", type=int, default=8, help="rendered views (default %(default)s)")
+    p.add_argument(
+        "--depth_model", default=DEFAULT_DEPTH_MODEL, help="depth network (default %(default)s)"
+    )
+    p.add_argument(
+        "--num_workers", type=int, default=1, help="worker processes (default %(default)s)"
+    )
     p.add_argument("--overwrite", action="store_true", help="start from an empty folder")
     p.set_defaults(func=run)
 

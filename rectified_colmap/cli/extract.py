@@ -104,8 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--conf",
         default="rectsift",
-        help="named configuration (rectsift, rectsift-fast, sift) or a JSON file "
-        'of overrides, e.g. {"rectify": {"max_viewing_angle_deg": 85}}',
+        help=f"named configuration ({', '.join(confs)}; default %(default)s) or a JSON "
+        'file of overrides, e.g. {"rectify": {"max_viewing_angle_deg": 85}}',
     )
     p.add_argument(
         "--orientation",
@@ -121,7 +121,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--num_workers",
         type=int,
         default=1,
-        help="worker processes (with --ray: Ray actors; default there: one per CPU of the cluster)",
+        help="worker processes (default %(default)s; with --ray: Ray actors, default there: "
+        "one per CPU of the cluster)",
     )
     p.add_argument(
         "--shard",
