@@ -99,14 +99,7 @@ def extract(
             "no depth source (no --depth_path, --depth_model none): every image gets plain SIFT"
         )
     check_outputs(database, hloc_features)
-    parallel = num_workers > 1 or ray_address is not None
-    init = WorkerInit(
-        None if depth_path is None else Path(depth_path).absolute(),
-        depth_kind,
-        png_scale,
-        depth_model,
-        1 if parallel else None,
-    )
+    init = WorkerInit.of(depth_path, depth_kind, png_scale, depth_model, num_workers, ray_address)
     runner = make_runner(init, num_workers, ray_address)  # fails here on a bad depth source
 
     from ..io.colmap_db import ColmapDatabase

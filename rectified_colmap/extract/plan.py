@@ -218,6 +218,7 @@ class _Planner:
             self._report_replaced()
 
     def _report_replaced(self) -> None:
+        """How many match rows re-extracting the replaced images deletes."""
         n_matches, n_geoms = self.db.count_matches(self.replaced)
         self.summary.deleted_matches = (n_matches, n_geoms)
         if n_matches or n_geoms:

@@ -37,6 +37,8 @@ def quiet_pycolmap() -> None:
 
 
 class Job(NamedTuple):
+    """One image to extract, as sent to a worker."""
+
     name: str
     path: Path
     """Absolute: workers may run elsewhere (another process, a Ray node)."""
@@ -68,6 +70,14 @@ class WorkerInit:
     model_threads: int | None
     """Threads of the depth network; None: its default (one process does everything)."""
 
+    @classmethod
+    def of(cls, depth_path, depth_kind, png_scale, depth_model, num_workers, ray_address):
+        """For a run with these settings: the depth folder made absolute (workers may
+        run elsewhere), one network thread per worker when there are several."""
+        parallel = num_workers > 1 or ray_address is not None
+        depth_path = None if depth_path is None else Path(depth_path).absolute()
+        return cls(depth_path, depth_kind, png_scale, depth_model, 1 if parallel else None)
+
     def depth_sources(self) -> dict:
         """{"files": FileDepthSource | None, "network": OnnxDepthSource | None}; raises
         with a one-line message naming the folder or model when one cannot be used."""
@@ -83,6 +93,7 @@ class WorkerInit:
         return sources
 
     def _network(self):
+        """The depth network, or ValueError naming ``--depth_model``."""
         from ..depth.registry import load_depth_source
 
         try:
@@ -201,6 +212,7 @@ _pool_worker: Worker | None = None
 
 
 def _start_pool_worker(init: WorkerInit) -> None:
+    """The pool's initializer: this process's Worker."""
     global _pool_worker
     _pool_worker = Worker(init)
 

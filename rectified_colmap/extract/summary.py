@@ -18,6 +18,8 @@ def error_message(e: Exception) -> str:
 
 @dataclass
 class Summary:
+    """Per image, what the run did with it; :meth:`report` writes it up in lines."""
+
     done: list[str] = field(default_factory=list)
     """Images extracted in this run."""
     copied: dict[str, str] = field(default_factory=dict)
