@@ -226,6 +226,22 @@ class VpConf:
     """Depth-free patches: 'lines' = line-support regions (disjoint, vp.line_support_patches)
     or 'whole' = the paper's VP baseline, whole-image warps (per trusted axis, each side of
     its vanishing line entirely; overlapping, vp.whole_image_patches). See docs/vp.md."""
+    line_hypotheses: int = 0
+    """Plane hypotheses from pairs of vanishing points (vp.hypotheses; no Manhattan frame, no
+    intrinsics needed): whole-image warps for up to this many of the strongest, beside the
+    patches of depth (0: off). See docs/vp.md "Plane hypotheses"."""
+    num_free_vps: int = 5
+    """Plane hypotheses: vanishing points found one after the other (sequential RANSAC)..."""
+    num_free_vp_hypotheses: int = 2000
+    """...each from this many candidates (pairs of segments)."""
+    hypothesis_min_vp_angle_deg: float = 20.0
+    """Two VPs closer than this are one family split in two: no plane."""
+    hypothesis_merge_angle_deg: float = 10.0
+    """A hypothesis within this angle of a better one, or of a patch the image already has,
+    is skipped."""
+    hypothesis_min_tilt_deg: float = 0.0
+    """Only hypotheses whose plane is tilted at least this much from the image plane (angle
+    between the normal and the optical axis) get a patch."""
 
     def __post_init__(self):
         if self.depth_free_regions not in ("lines", "whole"):

@@ -77,6 +77,20 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(cos))
 
 
+def line_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles between the lines of unit vectors (sign-free: v and -v are the same line, as
+    vanishing directions and plane normals up to sign), in degrees in [0, 90].
+
+    Args:
+        a: (..., 3) unit vectors (not normalised here).
+        b: (..., 3) unit vectors, broadcastable against a.
+    Returns:
+        (...) degrees; |cos| is clipped to [0, 1] first.
+    """
+    cos = np.clip(np.abs((a * b).sum(-1)), 0.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
 def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle between two vectors of any length, in degrees in [0, 180].
 

@@ -42,7 +42,15 @@ from .rectify import (
     viewing_coverage,
     viewing_masks,
 )
-from .vp import depth_free_planes, refine_directions
+from .vp import (
+    depth_free_planes,
+    free_vanishing_points,
+    hypothesis_patches,
+    image_segments,
+    plane_hypotheses,
+    refine_directions,
+)
+from .vp.segments import Segments
 
 logger = logging.getLogger(__name__)
 
@@ -82,13 +90,14 @@ def orient_with_vanishing_points(
     planes: PlaneResult,
     conf: ExtractConf,
     rng: np.random.Generator,
+    segments: Segments | None = None,
 ) -> PlaneResult:
     """Depth says WHICH pixels form planes, lines say HOW they are oriented: when a direction
     snapped to a trusted vanishing direction, each patch takes its fused direction (with the
     patch's sign; unsnapped directions are rotated with the snapped ones); patches of a
     direction the lines contradict keep their depth normal, or are dropped with
-    conf.vp.drop_contradicted."""
-    vp = refine_directions(gray, camera, planes.directions, conf.vp, rng=rng)
+    conf.vp.drop_contradicted. ``segments``: the image's, if already detected."""
+    vp = refine_directions(gray, camera, planes.directions, conf.vp, rng=rng, segments=segments)
     if vp.directions is None:
         return planes
     patches = []
@@ -102,6 +111,18 @@ def orient_with_vanishing_points(
             patch = replace(patch, normal=d * np.sign(d @ patch.normal))
         patches.append(patch)
     return replace(planes, directions=vp.directions, patches=patches)
+
+
+def add_plane_hypotheses(
+    camera: pycolmap.Camera, planes: PlaneResult, segments: Segments, conf: ExtractConf
+) -> PlaneResult:
+    """The planes plus whole-image patches for the strongest plane hypotheses from pairs of
+    vanishing points (vp.hypotheses; conf.vp.line_hypotheses of them, none within
+    conf.vp.hypothesis_merge_angle_deg of a patch the planes already have)."""
+    normals, _ = plane_hypotheses(free_vanishing_points(segments, conf.vp), conf.vp)
+    existing = [p.normal for p in planes.patches]
+    extra = hypothesis_patches(normals, camera, planes.labels.shape, existing, conf.vp)
+    return replace(planes, patches=list(planes.patches) + extra) if extra else planes
 
 
 def extract_image(
@@ -145,9 +166,14 @@ def extract_image(
                 normals = depth_to_normals(depth, camera, conf.normals)
         with timed(t, "planes"):
             planes = detect_planes(normals, conf.planes, rng)
-        if conf.vp.enabled and planes.directions is not None:
-            with timed(t, "vp"):
-                planes = orient_with_vanishing_points(gray, camera, planes, conf, rng)
+    orient = not depth_free and conf.vp.enabled and planes.directions is not None
+    if orient or conf.vp.line_hypotheses > 0:
+        with timed(t, "vp"):
+            segments = image_segments(gray, camera, conf.vp)
+            if orient:
+                planes = orient_with_vanishing_points(gray, camera, planes, conf, rng, segments)
+            if conf.vp.line_hypotheses > 0:
+                planes = add_plane_hypotheses(camera, planes, segments, conf)
 
     with timed(t, "homographies"):
         todo = patches_worth_rectifying(gray, camera, planes.patches, conf.rectify)

@@ -7,6 +7,7 @@ from rectified_colmap import camera as cam_utils
 from rectified_colmap.geometry import (
     angle_between_deg,
     angle_deg,
+    line_angle_deg,
     order_frame,
     rays_from_K,
     rotation_angle_deg,
@@ -210,3 +211,15 @@ def test_rays_from_K():
     cam = cam_utils.make_camera("PINHOLE", [200.0, 190.0, 121.0, 79.0], 240, 160)
     np.testing.assert_allclose(rays, cam_utils.grid_rays(cam, 240, 160), atol=1e-12)
     assert np.array_equal(rays[0, 0], [(0.5 - 121.0) / 200.0, (0.5 - 79.0) / 190.0, 1.0])
+
+
+def test_line_angle_deg_is_sign_free():
+    rng = np.random.default_rng(4)
+    a, b = _unit(rng.normal(size=(50, 3))), _unit(rng.normal(size=(50, 3)))
+    d = line_angle_deg(a, b)
+    assert d.shape == (50,) and (d >= 0).all() and (d <= 90).all()
+    assert np.array_equal(d, line_angle_deg(a, -b)) and np.array_equal(d, line_angle_deg(-a, b))
+    full = angle_deg(a, b)
+    assert np.allclose(d, np.minimum(full, 180.0 - full), atol=1e-9)
+    assert line_angle_deg(a[0], -a[0]) < 1e-5  # arccos near 1: ~1e-6 deg from rounding
+    assert line_angle_deg(np.array([1.0, 0, 0]), np.array([0, 1.0, 0])) == 90.0

@@ -29,7 +29,7 @@ import pycolmap
 
 from ..config import VpConf
 from .manhattan import ManhattanFrame, _rotvec_matrix, fit_manhattan
-from .segments import Segments, _unit, detect_segments, segments_on_sphere
+from .segments import Segments, _unit, image_segments
 
 logger = logging.getLogger(__name__)
 
@@ -131,6 +131,7 @@ def refine_directions(
     conf: VpConf = VpConf(),
     gravity: np.ndarray | None = None,
     rng: np.random.Generator | None = None,
+    segments: Segments | None = None,
 ) -> VpResult:
     """The pipeline's entry point: segments -> Manhattan frame -> fused directions.
 
@@ -144,6 +145,8 @@ def refine_directions(
         conf: VpConf.
         gravity: optional (3,) camera-frame unit vector (fit_manhattan).
         rng: RANSAC's generator (default: seeded by conf.seed).
+        segments: the image's segments (vp.segments.image_segments) when the caller has
+            them already; else they are detected here. Their labels are set.
     Returns:
         VpResult (per-direction arrays (3,) in the order of ``directions``).
     """
@@ -153,7 +156,7 @@ def refine_directions(
             f"refine_directions: image is {img.shape[1]}x{img.shape[0]} but its "
             f"camera is {camera.width}x{camera.height}"
         )
-    seg = segments_on_sphere(camera, detect_segments(img, conf))
+    seg = segments if segments is not None else image_segments(img, camera, conf)
     mf = fit_manhattan(seg, conf, gravity, rng)
     seg.labels = mf.labels
     if directions is None:

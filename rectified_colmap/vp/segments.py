@@ -127,6 +127,21 @@ def segments_on_sphere(camera: pycolmap.Camera, xy: np.ndarray) -> Segments:
     return Segments(xy, lengths, normals, rays[2], np.full(n, -1))
 
 
+def image_segments(
+    image_gray: np.ndarray, camera: pycolmap.Camera, conf: VpConf = VpConf()
+) -> Segments:
+    """The image's segments on the sphere: segments_on_sphere(camera, detect_segments(...)).
+
+    Args:
+        image_gray: (H, W) uint8, the camera's size.
+        camera: the image's camera.
+        conf: VpConf (detection options).
+    Returns:
+        Segments, longest first, labels all -1.
+    """
+    return segments_on_sphere(camera, detect_segments(image_gray, conf))
+
+
 def sin_errors(normals: np.ndarray, mids: np.ndarray, V: np.ndarray) -> np.ndarray:
     """Consistency of segments with VP directions (module docstring).
 
