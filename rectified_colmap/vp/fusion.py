@@ -28,7 +28,8 @@ import numpy as np
 import pycolmap
 
 from ..config import VpConf
-from .manhattan import ManhattanFrame, _rotvec_matrix, fit_manhattan
+from ..geometry import angle_deg, smallest_rotation
+from .manhattan import ManhattanFrame, fit_manhattan
 from .segments import Segments, _unit, image_segments
 
 logger = logging.getLogger(__name__)
@@ -66,25 +67,6 @@ def match_frame(directions: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, 
     return perm, signs
 
 
-# _angle_deg and _min_rotation duplicate geometry.angle_deg and geometry.smallest_rotation
-# but round differently (einsum vs a sum of products; cv2.Rodrigues vs the explicit formula:
-# last bits differ on about half of random inputs), and _min_rotation returns the identity
-# for antiparallel a, b. They stay until a commit of its own changes the values (issue 14).
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angles (...) in degrees between unit vectors a, b (..., 3)."""
-    return np.degrees(np.arccos(np.clip(np.einsum("...i,...i->...", a, b), -1.0, 1.0)))
-
-
-def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotation (3, 3) taking unit a (3,) onto unit b (3,) (identity when they are
-    (anti)parallel)."""
-    axis = np.cross(a, b)
-    s = np.linalg.norm(axis)
-    if s < 1e-12:
-        return np.eye(3)
-    return _rotvec_matrix(axis / s * np.arctan2(s, float(a @ b)))
-
-
 def fuse_directions(
     directions: np.ndarray, mf: ManhattanFrame, conf: VpConf = VpConf()
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -104,7 +86,7 @@ def fuse_directions(
     perm, signs = match_frame(D, mf.frame)
     Fm = mf.frame[perm] * signs[:, None]
     sigma, support = mf.sigma_deg[perm], mf.support[perm]
-    ang = _angle_deg(D, Fm)
+    ang = angle_deg(D, Fm)
     confident = sigma <= conf.max_sigma_deg
     snapped = confident & (ang <= conf.snap_angle_deg)
     contradicted = confident & ~snapped
@@ -120,7 +102,7 @@ def fuse_directions(
             out[k] = np.cross(out[(k + 1) % 3], out[(k + 2) % 3])
     elif len(idx) == 1:
         k = idx[0]
-        out = D @ _min_rotation(D[k], Fm[k]).T
+        out = D @ smallest_rotation(D[k], Fm[k]).T
     return out, snapped, contradicted, support, sigma
 
 
@@ -163,7 +145,7 @@ def refine_directions(
         return VpResult(None, np.zeros(3, bool), np.zeros(3), mf.frame, seg, manhattan=mf)
     D = np.asarray(directions, np.float64)
     out, snapped, contra, support, sigma = fuse_directions(D, mf, conf)
-    change = _angle_deg(D, out)
+    change = angle_deg(D, out)
     logger.debug(
         "vp: %d segments, frame support %s sigma %s, snapped %s, change %s deg",
         len(seg),
@@ -269,7 +251,7 @@ def check_patch(
         line_normal = _unit(np.cross(F[a], F[b]))
         if line_normal @ n < 0:
             line_normal = -line_normal
-        angle = float(_angle_deg(line_normal, n))
+        angle = float(angle_deg(line_normal, n))
         verdict = angle <= conf.snap_angle_deg
     elif num >= conf.patch_min_segments:
         verdict = frac >= conf.patch_min_inplane_frac
