@@ -239,6 +239,9 @@ class VpConf:
     hypothesis_merge_angle_deg: float = 10.0
     """A hypothesis within this angle of a better one, or of a patch the image already has,
     is skipped."""
+    hypotheses_only_unoriented: bool = False
+    """Plane hypotheses only for images whose depth directions no vanishing direction
+    snapped to (where the lines already oriented the planes, they are trusted)."""
     hypothesis_min_tilt_deg: float = 0.0
     """Only hypotheses whose plane is tilted at least this much from the image plane (angle
     between the normal and the optical axis) get a patch."""

@@ -91,15 +91,16 @@ def orient_with_vanishing_points(
     conf: ExtractConf,
     rng: np.random.Generator,
     segments: Segments | None = None,
-) -> PlaneResult:
+) -> tuple[PlaneResult, bool]:
     """Depth says WHICH pixels form planes, lines say HOW they are oriented: when a direction
     snapped to a trusted vanishing direction, each patch takes its fused direction (with the
     patch's sign; unsnapped directions are rotated with the snapped ones); patches of a
     direction the lines contradict keep their depth normal, or are dropped with
-    conf.vp.drop_contradicted. ``segments``: the image's, if already detected."""
+    conf.vp.drop_contradicted. ``segments``: the image's, if already detected. Returns the
+    planes and whether any direction snapped (the lines oriented the planes)."""
     vp = refine_directions(gray, camera, planes.directions, conf.vp, rng=rng, segments=segments)
     if vp.directions is None:
-        return planes
+        return planes, False
     patches = []
     for patch in planes.patches:
         k = patch.axis
@@ -110,7 +111,7 @@ def orient_with_vanishing_points(
             d = vp.directions[k]
             patch = replace(patch, normal=d * np.sign(d @ patch.normal))
         patches.append(patch)
-    return replace(planes, directions=vp.directions, patches=patches)
+    return replace(planes, directions=vp.directions, patches=patches), bool(vp.snapped.any())
 
 
 def add_plane_hypotheses(
@@ -170,9 +171,14 @@ def extract_image(
     if orient or conf.vp.line_hypotheses > 0:
         with timed(t, "vp"):
             segments = image_segments(gray, camera, conf.vp)
+            oriented = False
             if orient:
-                planes = orient_with_vanishing_points(gray, camera, planes, conf, rng, segments)
-            if conf.vp.line_hypotheses > 0:
+                planes, oriented = orient_with_vanishing_points(
+                    gray, camera, planes, conf, rng, segments
+                )
+            if conf.vp.line_hypotheses > 0 and not (
+                oriented and conf.vp.hypotheses_only_unoriented
+            ):
                 planes = add_plane_hypotheses(camera, planes, segments, conf)
 
     with timed(t, "homographies"):

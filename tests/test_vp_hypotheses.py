@@ -158,3 +158,25 @@ def test_pipeline_adds_the_plane_the_depth_missed():
     # the texture's outer edge against the black background, as plain SIFT's do)
     x, y = np.floor(rect.keypoints).astype(int).T
     assert np.isfinite(depth[np.clip(y, 0, 479), np.clip(x, 0, 639)]).mean() > 0.95
+
+
+def test_hypotheses_only_for_images_the_lines_did_not_orient(monkeypatch):
+    """hypotheses_only_unoriented: where a vanishing direction snapped (the lines oriented
+    the depth planes), no hypothesis is added; elsewhere they are."""
+    import rectified_colmap.pipeline as pipeline
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    R, t = look_at([4.0, -2.0, 2.0], [0.0, 0.0, 0.0])
+    img, _ = plane_view(facade_texture(), 8.0 / 512, K, R, t, (640, 480))
+    camera = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
+    frontal = np.broadcast_to(np.array([0.0, 0.0, -1.0]), (240, 320, 3)).copy()
+    conf = ExtractConf.from_dict({"vp": {"line_hypotheses": 2, "hypotheses_only_unoriented": True}})
+    for oriented in (True, False):
+        monkeypatch.setattr(
+            pipeline,
+            "orient_with_vanishing_points",
+            lambda g, c, planes, *a, o=oriented: (planes, o),
+        )
+        res = extract_image(img, camera, None, conf, normals=frontal)
+        added = [p for p in res.planes.patches if p.axis == -1]
+        assert bool(added) != oriented
