@@ -46,6 +46,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf
+from ..io.colmap_db import ColmapDatabase
+from ..io.hloc_h5 import HlocFeatureWriter
 from .plan import CameraArgs, plan, select_images
 from .run import Job, WorkerInit, make_runner
 from .summary import Summary
@@ -101,9 +103,6 @@ def extract(
     check_outputs(database, hloc_features)
     init = WorkerInit.of(depth_path, depth_kind, png_scale, depth_model, num_workers, ray_address)
     runner = make_runner(init, num_workers, ray_address)  # fails here on a bad depth source
-
-    from ..io.colmap_db import ColmapDatabase
-    from ..io.hloc_h5 import HlocFeatureWriter
 
     h5 = db = None
     try:

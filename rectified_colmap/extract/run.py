@@ -22,6 +22,7 @@ import numpy as np
 import pycolmap
 
 from ..config import ExtractConf
+from ..depth.registry import load_depth_source
 from ..io.images import ImageError, decode_image
 from ..pipeline import ImageResult, extract_image
 from .summary import error_message
@@ -94,8 +95,6 @@ class WorkerInit:
 
     def _network(self):
         """The depth network, or ValueError naming ``--depth_model``."""
-        from ..depth.registry import load_depth_source
-
         try:
             return load_depth_source(self.depth_model, num_threads=self.model_threads)
         except Exception as e:  # unknown name, missing or corrupt file, onnxruntime errors

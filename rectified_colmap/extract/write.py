@@ -18,6 +18,8 @@ import pycolmap
 from ..features import Features
 from ..io import hloc_h5
 from ..io.images import ImageError
+from ..io.lock import check_writable
+from ..viz import save_visualizations
 from .summary import Summary
 
 logger = logging.getLogger(__package__)
@@ -25,8 +27,6 @@ logger = logging.getLogger(__package__)
 
 def check_outputs(database: Path | None, hloc_features: Path | None) -> None:
     """One-line errors, before anything runs, for outputs that cannot be written."""
-    from ..io.lock import check_writable
-
     for path, what in ((database, "database"), (hloc_features, "feature file")):
         if path is not None:
             check_writable(path, what)
@@ -133,8 +133,6 @@ class Writer:
 
     def _draw(self, out) -> None:
         """The image's PNGs, from the pixels the worker decoded (never read again)."""
-        from ..viz import save_visualizations
-
         try:
             camera = self.cameras[out.name].camera
             save_visualizations(Path(self.visualize), out.name, out.rgb, camera, out.result)
