@@ -24,12 +24,13 @@ of the full image (the map may have any resolution with the image's aspect ratio
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pycolmap
 
 from . import camera as cam_utils
-from .config import DISPARITY_SHIFTS, ExtractConf, NormalConf, PlaneConf
+from .config import DISPARITY_SHIFTS, ExtractConf, PlaneConf
 from .depth import DepthMap, disparity_to_depth, resample_depth
 from .geometry import scaled_size
 from .normals import backproject, estimate_normals
@@ -118,18 +119,15 @@ def estimate_shift(
     w, h = scaled_size(w0, h0, min(max_size, conf.normals.work_max_size))
     p = resample_depth(disparity, w, h)
     rays = cam_utils.grid_rays(camera, w, h)
-    ncf = NormalConf(**{**vars(conf.normals)})
-    pcf = PlaneConf(
-        **{
-            **vars(conf.planes),
-            "num_samples": min(conf.planes.num_samples, 4000),
-            "num_restarts": min(conf.planes.num_restarts, 3),
-        }
+    pcf = replace(
+        conf.planes,
+        num_samples=min(conf.planes.num_samples, 4000),
+        num_restarts=min(conf.planes.num_restarts, 3),
     )
 
     def cost(t: float) -> float:
         z = disparity_to_depth(p, t)
-        return orthogonality_cost(estimate_normals(backproject(z, rays), ncf), pcf, rng)
+        return orthogonality_cost(estimate_normals(backproject(z, rays), conf.normals), pcf, rng)
 
     coarse = candidate_shifts(p)
     if coarse.size == 0:
