@@ -157,7 +157,7 @@ def extract_image(
     if depth_free:  # planes from vanishing points alone (conf.vp.depth_free)
         with timed(t, "vp"):
             w, h = scaled_size(W, H, conf.normals.work_max_size)
-            planes, _ = depth_free_planes(
+            planes, lines = depth_free_planes(
                 gray, camera, (h, w), conf.vp, conf.planes.min_area_frac, rng=rng
             )
     else:
@@ -170,7 +170,8 @@ def extract_image(
     orient = not depth_free and conf.vp.enabled and planes.directions is not None
     if orient or conf.vp.line_hypotheses > 0:
         with timed(t, "vp"):
-            segments = image_segments(gray, camera, conf.vp)
+            # depth-free: the segments its frame was fitted to
+            segments = lines.segments if depth_free else image_segments(gray, camera, conf.vp)
             oriented = False
             if orient:
                 planes, oriented = orient_with_vanishing_points(
