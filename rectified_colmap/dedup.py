@@ -164,10 +164,19 @@ def duplicate_fraction(feats: Features, radius: float = 1.0, min_cosine: float =
     return float(twin.mean())
 
 
+def keypoint_cap(plain_count: int, conf: DedupConf = DedupConf()) -> int:
+    """How many keypoints rectified SIFT may output on an image where plain SIFT keeps
+    ``plain_count``: ``plain_count`` x (1 + conf.extra_frac). With extra_frac 0 as many as
+    plain SIFT, so every rectified feature replaces a plain one; above 0 the rectified
+    features first come on top of plain SIFT's."""
+    return round(plain_count * (1 + conf.extra_frac))
+
+
 def fill_from_plain(
     rectified: Features, plain: Features, target: int, conf: DedupConf = DedupConf()
 ) -> Features:
-    """Rectified features plus plain ones, without near-duplicates, at most ``target``.
+    """Rectified features plus plain ones, without near-duplicates, at most ``target``
+    (``keypoint_cap``).
 
     rectified: the features of all patches (patch >= 0), mapped back; plain: plain SIFT
     detected with the whole budget (a superset of what a smaller budget would keep: COLMAP

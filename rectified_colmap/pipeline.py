@@ -21,7 +21,7 @@ import numpy as np
 import pycolmap
 
 from .config import ExtractConf
-from .dedup import fill_from_plain
+from .dedup import fill_from_plain, keypoint_cap
 from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import (
@@ -220,5 +220,6 @@ def extract_image(
         # Target: as many keypoints as plain SIFT keeps with the whole budget on the image.
         region_frac = plain_region.mean()
         target = round(len(plain) / region_frac) if region_frac > 0 else total
-        result.features = fill_from_plain(Features.concatenate(parts), plain, target, conf.dedup)
+        cap = keypoint_cap(target, conf.dedup)
+        result.features = fill_from_plain(Features.concatenate(parts), plain, cap, conf.dedup)
     return result

@@ -9,6 +9,7 @@ from rectified_colmap.dedup import (
     duplicate_fraction,
     duplicate_pairs,
     fill_from_plain,
+    keypoint_cap,
     frame_anisotropy,
     near_duplicate_mask,
     neighbour_pairs,
@@ -135,6 +136,15 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
     # Patches that yield nothing leave the whole budget to plain SIFT.
     assert len(fill_from_plain(Features.empty(), plain, 150, DedupConf())) == 150
     assert len(fill_from_plain(Features.empty(), plain, 500, DedupConf())) == n
+    # extra_frac: the rectified features come on top of plain SIFT's up to that fraction
+    # (170 plain features are left after the twins, 50 rectified ones).
+    for extra, num_plain in ((0.25, 170), (0.1, 170), (0.05, 160), (0.0, 150)):
+        cap = keypoint_cap(n, DedupConf(extra_frac=extra))
+        assert cap == round(n * (1 + extra))
+        out = fill_from_plain(rect, plain, cap, DedupConf())
+        assert (out.patch >= 0).sum() == 50 and (out.patch < 0).sum() == num_plain
+        kept = plain.scales[np.isin(plain.keypoints, out.keypoints).all(1)]
+        assert kept.min() >= np.sort(plain.scales[rest])[::-1][num_plain - 1]
 
 
 K = np.array([[420.0, 0, 240], [0, 420, 180], [0, 0, 1]])
@@ -161,3 +171,28 @@ def test_pipeline_output_has_no_cross_source_twins_and_plain_sift_count():
     assert len(duplicate_pairs(on, DedupConf())) == 0
     assert after <= duplicate_fraction(plain) + 0.01
     assert len(on) == len(plain)
+
+
+def test_pipeline_extra_frac_keeps_plain_sift_and_adds_rectified_features():
+    """With dedup.extra_frac the output is plain SIFT's keypoints (all of them but the twins
+    a rectified feature replaced) plus rectified ones, at most (1 + extra_frac) x as many."""
+    texture = textured_image(900, 900, 11)
+    R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    conf = ExtractConf()
+    conf.sift.max_num_features = 2000
+    conf.dedup.extra_frac = 0.5
+    plain = detect_sift(img, conf.sift)
+    out = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    rect = out.subset(out.patch >= 0)
+    assert len(plain) < len(out) <= round(1.5 * len(plain)) and len(rect) > 200
+    # every plain keypoint is in the output, or a kept rectified twin lies within 1 px
+    kept = out.subset(out.patch < 0)
+    d_kept = np.linalg.norm(plain.keypoints[:, None] - kept.keypoints[None], axis=-1).min(1)
+    d_rect = np.linalg.norm(plain.keypoints[:, None] - rect.keypoints[None], axis=-1).min(1)
+    assert np.all((d_kept == 0) | (d_rect < DedupConf().radius_px))
+    assert len(duplicate_pairs(out, DedupConf())) == 0
+    # without extra_frac the rectified features replace plain ones beyond the twins
+    conf.dedup.extra_frac = 0.0
+    parity = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    assert len(parity) == len(plain) and (parity.patch < 0).sum() < len(kept)
