@@ -16,12 +16,16 @@ Everything a user waits for is counted: start-up and imports, decoding, camera s
 network, SIFT, writing. Columns per image: CPU seconds of the process and its children
 (``os.wait4``; on a shared machine CPU seconds leave out the time waiting for a core, wall
 seconds do not), wall seconds, the process's peak resident memory, keypoints (from the
-database). ``ratio`` divides by the ``pycolmap`` row of the same run.
+database). ``ratio`` divides by the ``pycolmap`` row of the same run. ``--num_workers 1 2``
+runs ``rectified`` once per worker count (``rectified xN`` rows): ``peak MB`` is then the
+largest single process (``ru_maxrss``), ``tree MB`` the peak of the summed resident memory
+of the process and its children (sampled from /proc every 0.1 s).
 
     python scripts/bench_cli.py --image_path ../shared/data/strecha-dev/fountain-P11/images \\
         --max_images 6 --camera_params 1379.74,1382.08,760.095,503.155
     python scripts/bench_cli.py ... --resize 3072x2048      # upscaled copies
     python scripts/bench_cli.py --synthetic 6               # rendered streets (PNG)
+    python scripts/bench_cli.py ... --methods pycolmap rectified --num_workers 1 2
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import sqlite3
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -52,18 +57,56 @@ pycolmap.extract_features(db, images, image_names=names, extraction_options=opts
 """
 
 
+def tree_rss_mb(root: int) -> float:
+    """Summed resident memory (MiB) of process ``root`` and its descendants (/proc)."""
+    parent, rss = {}, {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            statm = (d / "statm").read_text().split()
+        except OSError:  # the process ended meanwhile
+            continue
+        parent[int(d.name)] = int(stat[stat.rindex(")") + 2 :].split()[1])
+        rss[int(d.name)] = int(statm[1]) * os.sysconf("SC_PAGE_SIZE")
+    tree, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        tree.add(pid)
+        todo += [c for c, pp in parent.items() if pp == pid and c not in tree]
+    return sum(rss.get(pid, 0) for pid in tree) / 2**20
+
+
 def run_measured(cmd: list[str], env: dict | None = None) -> dict:
-    """Run ``cmd``; its wall seconds, CPU seconds (user + system, with its children) and
-    peak resident memory (MiB). Raises with its output when it fails."""
+    """Run ``cmd``; its wall seconds, CPU seconds (user + system, with its children), peak
+    resident memory of its largest process and peak of the summed resident memory of its
+    process tree (MiB). Raises with its output when it fails."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+    peak_tree = [0.0]
+    done = threading.Event()
+
+    def sample():
+        while not done.wait(0.1):
+            peak_tree[0] = max(peak_tree[0], tree_rss_mb(proc.pid))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
     out = proc.stdout.read()
+    done.set()
+    sampler.join()
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise RuntimeError(f"{cmd[0]} failed ({proc.returncode}):\n{out.decode()[-3000:]}")
-    return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "peak_MB": usage.ru_maxrss / 1024}
+    return {
+        "wall": wall,
+        "cpu": usage.ru_utime + usage.ru_stime,
+        "peak_MB": usage.ru_maxrss / 1024,
+        "tree_MB": peak_tree[0],
+    }
 
 
 def keypoints_per_image(database: Path) -> float:
@@ -119,6 +162,12 @@ def main(argv=None):
     p.add_argument("--max_num_features", type=int, default=8192)
     p.add_argument("--conf", help="--conf of rectified-colmap (default: its default)")
     p.add_argument("--orientation", help="--orientation of rectified-colmap")
+    p.add_argument(
+        "--num_workers",
+        type=int,
+        nargs="+",
+        help="run rectified once per worker count (default: once, with its default)",
+    )
     p.add_argument(
         "--methods",
         nargs="+",
@@ -183,12 +232,19 @@ def main(argv=None):
             print("colmap executable not found: skipping that row", file=sys.stderr)
             args.methods.remove("colmap")
 
-        rows = {}
+        runs = []
         for method in args.methods:
-            db = tmp / f"{method}.db"
-            cmd = [db.as_posix() if c is None else c for c in cmds[method]]
-            rows[method] = run_measured(cmd, env) | {"kp": keypoints_per_image(db)}
-            print(f"{method}: {rows[method]['wall']:.1f} s wall", file=sys.stderr, flush=True)
+            if method == "rectified" and args.num_workers:
+                for w in args.num_workers:
+                    runs.append((f"rectified x{w}", cmds[method] + ["--num_workers", str(w)]))
+            else:
+                runs.append((method, cmds[method]))
+        rows = {}
+        for i, (name, command) in enumerate(runs):
+            db = tmp / f"run{i}.db"
+            cmd = [db.as_posix() if c is None else c for c in command]
+            rows[name] = run_measured(cmd, env) | {"kp": keypoints_per_image(db)}
+            print(f"{name}: {rows[name]['wall']:.1f} s wall", file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
@@ -198,9 +254,9 @@ def main(argv=None):
     print(f"\n{what}, {size[0]}x{size[1]}, budget {n}; load average at end {load}\n")
     print(
         "| method | CPU s / image | wall s / image | CPU ratio | wall ratio | peak MB "
-        "| keypoints / image |"
+        "| tree MB | keypoints / image |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     base = rows.get("pycolmap")
     k = len(names)
     for method, r in rows.items():
@@ -208,7 +264,7 @@ def main(argv=None):
         wall_ratio = f"{r['wall'] / base['wall']:.2f}x" if base else "-"
         print(
             f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} "
-            f"| {wall_ratio} | {r['peak_MB']:.0f} | {r['kp']:.0f} |"
+            f"| {wall_ratio} | {r['peak_MB']:.0f} | {r['tree_MB']:.0f} | {r['kp']:.0f} |"
         )
 
 
