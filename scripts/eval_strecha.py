@@ -13,6 +13,10 @@ images/, sparse/ and pairs_with_gt.txt, see the data README):
 3. with ``--localize``: every third image held out as a query, the rest triangulated into
    their known (metric) poses -> localization.md.
 
+``--plain_budget N`` adds plain SIFT with another budget (method ``sift@N``) and a paired
+table against it: the control for methods that output more keypoints than plain SIFT with
+the same budget (e.g. ``rectsift-plus``).
+
 Example (plain SIFT only)::
 
     python scripts/eval_strecha.py --data ../shared/data/strecha-dev \
@@ -36,7 +40,7 @@ from rectified_colmap.config import EvalConf, LocalizeConf, SiftConf
 from rectified_colmap.eval.localize import accuracy_table, localize_with_model
 from rectified_colmap.eval.pairs import read_pairs_with_gt
 from rectified_colmap.eval.relpose import evaluate_pairs
-from rectified_colmap.eval.report import write_outputs
+from rectified_colmap.eval.report import paired_markdown, write_outputs
 
 logger = logging.getLogger("eval_strecha")
 
@@ -64,7 +68,9 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     names = [f"images/{p.name}" for p in sorted((scene / "images").glob("*.jpg"))]
     model, params = scene_camera(scene)
     sift = {"max_num_features": args.max_num_features} if args.max_num_features else {}
-    if method == "sift":
+    if method.startswith("sift@"):  # --plain_budget
+        sift = {"max_num_features": int(method[5:])}
+    if method == "sift" or method.startswith("sift@"):
         # exactly plain COLMAP SIFT (no patch can pass, no coarse-first)
         conf = {"planes": {"min_area_frac": 2.0}, "sift": {**sift, "coarse_first": False}}
         kw = dict(conf=conf, depth_model="none")
@@ -129,6 +135,15 @@ def main(argv=None) -> int:
         "--rect_conf), evaluated beside --methods, e.g. "
         '\'nodedup={"dedup": {"enabled": false}}\'; repeatable',
     )
+    p.add_argument(
+        "--plain_budget",
+        type=int,
+        action="append",
+        default=[],
+        metavar="N",
+        help="also plain SIFT with budget N (method sift@N), with a paired table against it; "
+        "repeatable",
+    )
     p.add_argument("--bin_deg", type=float, default=10.0)
     p.add_argument("--ransac_max_error", type=float, default=None)
     p.add_argument("--num_workers", type=int, default=2)
@@ -158,9 +173,8 @@ def main(argv=None) -> int:
 
     records, loc_rows = [], {}
     for scene in scenes:
-        feats = {
-            m: extract_method(scene, m, out, args) for m in list(args.methods) + list(args.variants)
-        }
+        names = list(args.methods) + [f"sift@{n}" for n in args.plain_budget] + list(args.variants)
+        feats = {m: extract_method(scene, m, out, args) for m in names}
         pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
         recs = evaluate_pairs(pairs, feats, conf, args.num_workers, progress=not args.no_progress)
         for r in recs:
@@ -182,6 +196,9 @@ def main(argv=None) -> int:
     table = write_outputs(
         records, out, conf, not args.no_plot, f"Strecha ({', '.join(s.name for s in scenes)})"
     )
+    for n in args.plain_budget:
+        table += f"\nPaired with sift@{n} (same pairs; p: exact two-sided)\n\n"
+        table += paired_markdown(records, f"sift@{n}", conf.bin_deg)
     text = [
         "# Strecha results",
         "",
