@@ -304,9 +304,10 @@ confs: dict[str, dict[str, Any]] = {
     # rectsift-wide whose rectified features come on top of plain SIFT's (up to +50 %):
     # plain SIFT's features are all kept (twins aside). 5 of 7 evd-dev pairs, and not below
     # plain SIFT with the same budget on Strecha in any rotation bin (1024 and 8192
-    # features), but with +5-26 % keypoints: plain SIFT with as many keypoints gets more
-    # correct matches below 60 degrees, and hloc Sacre Coeur loses 3.7 % of its 3D points
-    # (docs/evaluation.md "Rectified features on top of plain SIFT").
+    # features), but with +5-26 % keypoints: at 1024 features plain SIFT with as many
+    # keypoints gets more correct matches below 60 degrees (at 8192 not), and hloc Sacre
+    # Coeur loses 3.7 % of its 3D points (docs/evaluation.md "Rectified features on top of
+    # plain SIFT").
     "rectsift-plus": {
         "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
         "rectify": {"max_viewing_angle_deg": 86.0},
