@@ -68,9 +68,10 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     names = [f"images/{p.name}" for p in sorted((scene / "images").glob("*.jpg"))]
     model, params = scene_camera(scene)
     sift = {"max_num_features": args.max_num_features} if args.max_num_features else {}
-    if method.startswith("sift@"):  # --plain_budget
-        sift = {"max_num_features": int(method[5:])}
-    if method == "sift" or method.startswith("sift@"):
+    plain_budget = method.startswith("sift@")  # --plain_budget N: method sift@N
+    if plain_budget:
+        sift = {"max_num_features": int(method.removeprefix("sift@"))}
+    if method == "sift" or plain_budget:
         # exactly plain COLMAP SIFT (no patch can pass, no coarse-first)
         conf = {"planes": {"min_area_frac": 2.0}, "sift": {**sift, "coarse_first": False}}
         kw = dict(conf=conf, depth_model="none")
