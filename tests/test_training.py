@@ -16,6 +16,8 @@ from rectified_colmap.training.data import (  # noqa: E402
 from rectified_colmap.training.model import DepthNet, build_model, pretrained_weights_path  # noqa: E402
 from rectified_colmap.training.train import lr_factor, make_optimizer, train_step  # noqa: E402
 
+from tests.scenes import plane_depth  # noqa: E402
+
 torch.set_num_threads(1)
 
 
@@ -99,9 +101,7 @@ def test_normals_from_known_plane():
     n /= np.linalg.norm(n)
     K = np.array([[80.0, 0, 50], [0, 80, 30], [0, 0, 1]])
     h, w = 60, 100
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    rays = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1)
-    z = -1.0 / (rays @ n)
+    z = plane_depth(n, K, h, w)
     assert np.all(z > 0)
     got = losses.normals_from_log_depth(
         torch.from_numpy(np.log(z))[None, None], torch.from_numpy(K)[None]

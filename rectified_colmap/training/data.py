@@ -132,6 +132,8 @@ def random_zoom_crop(
             s["normals"].astype(np.float32), a_cv, flags=cv2.INTER_NEAREST, **warp
         ),
     }
+    if "sky" in s:
+        out["sky"] = cv2.warpAffine(s["sky"], a_cv, flags=cv2.INTER_NEAREST, **warp)
     K = np.array(s["K"], np.float64).copy()
     K[:2] = np.concatenate([a[:, :2] @ K[:2, :2], (a[:, :2] @ K[:2, 2:] + a[:, 2:])], 1)
     out["K"] = K
@@ -144,12 +146,15 @@ def hflip(s: dict) -> dict:
     n[..., 0] *= -1
     K = s["K"].copy()
     K[0, 2] = w - K[0, 2]
-    return {
+    out = {
         "image": s["image"][:, ::-1].copy(),
         "depth": s["depth"][:, ::-1].copy(),
         "normals": n,
         "K": K,
     }
+    if "sky" in s:
+        out["sky"] = s["sky"][:, ::-1].copy()
+    return out
 
 
 def photometric(image: np.ndarray, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -198,34 +203,58 @@ def augment(
     s = random_zoom_crop(s, rng, out_h, out_w)
     if rng.random() < 0.5:
         s = hflip(s)
-    img = photometric(s["image"], s["depth"], rng) if photometric_aug else s["image"]
+    real = "sky" in s  # real photos: sparse depth, so no depth-dependent haze
+    haze_depth = np.zeros_like(s["depth"]) if real else s["depth"]
+    img = photometric(s["image"], haze_depth, rng) if photometric_aug else s["image"]
+    sky = s["sky"] if real else np.where(s["depth"] > 0, 0, 1).astype(np.uint8)
     return {
         "image": normalise(img),
         "depth": s["depth"][None].astype(np.float32),
         "normals": np.ascontiguousarray(s["normals"].transpose(2, 0, 1), np.float32),
         "K": s["K"].astype(np.float32),
+        "sky": sky[None].astype(np.float32),
+        "real": np.float32(real),
     }
 
 
 class PoolDataset:
-    """Map-style dataset over pool files (loaded once into memory), augmented per item.
+    """Map-style dataset over pool files, augmented per item, optionally mixed with real
+    photos (:mod:`rectified_colmap.training.real` samples) at rate ``real_frac``.
 
-    ``__len__`` is ``length`` (items are drawn at random from the pool); the randomness of
-    item ``i`` depends only on (seed, epoch, i), so a run is reproducible from its seed."""
+    ``paths``: render files, loaded once into memory; or ``pool_dir``: a folder that may
+    still be growing (renderers running beside training), re-listed every
+    ``refresh_every`` items per worker, each item read from disk. ``__len__`` is
+    ``length``; the randomness of item ``i`` depends only on (seed, i) and the files
+    present, so a run over a fixed pool is reproducible from its seed."""
 
     def __init__(
         self,
-        paths,
-        out_h: int,
-        out_w: int,
+        paths=(),
+        out_h: int = 192,
+        out_w: int = 256,
         seed: int = 0,
         length: int = 10**7,
         photometric_aug: bool = True,
+        real_paths=(),
+        real_frac: float = 0.0,
+        pool_dir: str | Path | None = None,
+        refresh_every: int = 200,
     ):
         import torch  # noqa: F401  (torch tensors returned)
 
+        from .real import load_real_sample
+
         self.samples = [load_sample(p) for p in paths]
-        if not self.samples:
+        self.pool_dir = None if pool_dir is None else Path(pool_dir)
+        self.files: list[Path] = []
+        self.refresh_every, self._since = refresh_every, None
+        self.real = [load_real_sample(p) for p in real_paths]
+        for r in self.real:  # camera-less photos: any valid K (they carry no geometry)
+            if not np.isfinite(r["K"]).all():
+                h, w = r["depth"].shape
+                r["K"] = np.array([[w, 0, w / 2], [0, w, h / 2], [0, 0, 1.0]])
+        self.real_frac = real_frac if self.real else 0.0
+        if not self.samples and self.pool_dir is None:
             raise ValueError("PoolDataset: no training samples")
         self.out_h, self.out_w, self.seed, self.length = out_h, out_w, seed, length
         self.photometric_aug = photometric_aug
@@ -233,10 +262,24 @@ class PoolDataset:
     def __len__(self):
         return self.length
 
+    def _render(self, rng: np.random.Generator) -> dict:
+        if self.samples:
+            return self.samples[rng.integers(len(self.samples))]
+        if self._since is None or self._since >= self.refresh_every or not self.files:
+            self.files = sorted(self.pool_dir.glob("*[0-9].npz"))
+            self._since = 0
+            if not self.files:
+                raise ValueError(f"{self.pool_dir}: no rendered views yet")
+        self._since += 1
+        return load_sample(self.files[rng.integers(len(self.files))])
+
     def __getitem__(self, i):
         import torch
 
         rng = np.random.default_rng([self.seed, i])
-        s = self.samples[rng.integers(len(self.samples))]
+        if self.real_frac and rng.random() < self.real_frac:
+            s = self.real[rng.integers(len(self.real))]
+        else:
+            s = self._render(rng)
         a = augment(s, rng, self.out_h, self.out_w, self.photometric_aug)
         return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in a.items()}

@@ -33,14 +33,18 @@ def log_residual(pred_log, depth):
     return d, mask
 
 
-def si_log_loss(pred_log, depth):
-    """Scale-invariant log loss: per-image variance of the log residual over valid pixels."""
+def si_log_loss(pred_log, depth, min_points: int = 10):
+    """Scale-invariant log loss: per-image variance of the log residual over valid pixels,
+    averaged over the images with at least ``min_points`` valid pixels (sparse depth of real
+    photos: images without SfM points do not dilute it)."""
     d, mask = log_residual(pred_log, depth)
     m = mask.float()
-    n = m.sum((1, 2, 3)).clamp(min=1)
+    cnt = m.sum((1, 2, 3))
+    n = cnt.clamp(min=1)
     mean = d.sum((1, 2, 3)) / n
     var = ((d - mean[:, None, None, None]) ** 2 * m).sum((1, 2, 3)) / n
-    return var.mean()
+    use = (cnt >= min_points).float()
+    return (var * use).sum() / use.sum().clamp(min=1)
 
 
 def gradient_loss(pred_log, depth, scales: int = 4):
@@ -148,14 +152,51 @@ def normal_loss(pred_log, depth, normals, K, scales: int = 2):
     return total / scales
 
 
+def label_normal_loss(pred_log, normals, K, real):
+    """Mean (1 - cos) between normals of the predicted depth and LABEL normals (real photos:
+    line-support planes of the Manhattan frame), on the labelled pixels of the images with
+    ``real`` (B,) > 0. Zero when nothing is labelled."""
+    n = normals_from_log_depth(pred_log, K)
+    lab = normals[:, :, 1:-1, 1:-1]
+    mask = ((lab.abs().sum(1, keepdim=True) > 0) & (real[:, None, None, None] > 0)).float()
+    cos = (n * lab).sum(1, keepdim=True)
+    return ((1 - cos) * mask).sum() / mask.sum().clamp(min=1)
+
+
+def sky_loss(sky_logit, sky):
+    """Binary cross-entropy of the sky logit (B, 1, H, W) against ``sky`` (B, 1, H, W):
+    1 sky, 0 not sky, 255 unknown (ignored)."""
+    known = (sky != 255).float()
+    target = (sky == 1).float()
+    bce = F.binary_cross_entropy_with_logits(sky_logit, target, reduction="none")
+    return (bce * known).sum() / known.sum().clamp(min=1)
+
+
 def total_loss(
-    pred_log, batch, w_si: float = 1.0, w_grad: float = 1.0, w_normal: float = 1.0
+    pred_log,
+    batch,
+    w_si: float = 1.0,
+    w_grad: float = 1.0,
+    w_normal: float = 1.0,
+    w_lines: float = 1.0,
+    w_sky: float = 0.5,
+    sky_logit=None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Weighted sum of the losses -> (loss, parts as floats). Batches with ``real`` (B,)
+    and ``sky`` (B, 1, H, W) (training.data) add the label-normal loss on real photos and,
+    given ``sky_logit``, the sky loss."""
     depth, normals, K = batch["depth"], batch["normals"], batch["K"]
     parts = {
         "si": si_log_loss(pred_log, depth),
         "grad": gradient_loss(pred_log, depth),
         "normal": normal_loss(pred_log, depth, normals, K),
     }
-    loss = w_si * parts["si"] + w_grad * parts["grad"] + w_normal * parts["normal"]
+    weights = {"si": w_si, "grad": w_grad, "normal": w_normal}
+    if "real" in batch:
+        parts["lines"] = label_normal_loss(pred_log, normals, K, batch["real"])
+        weights["lines"] = w_lines
+    if sky_logit is not None and "sky" in batch:
+        parts["sky"] = sky_loss(sky_logit, batch["sky"])
+        weights["sky"] = w_sky
+    loss = sum(weights[k] * v for k, v in parts.items())
     return loss, {k: float(v.detach()) for k, v in parts.items()}

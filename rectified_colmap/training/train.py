@@ -42,10 +42,17 @@ def set_lr(opt, lr: float) -> None:
         g["lr"] = lr * g.get("base", 1.0)
 
 
-def train_step(model, batch: dict, opt, weights: dict | None = None) -> tuple[float, dict]:
+def train_step(
+    model, batch: dict, opt, weights: dict | None = None, amp_dtype=None
+) -> tuple[float, dict]:
+    """One optimiser step. ``amp_dtype`` (e.g. torch.bfloat16 on a GPU): the network runs
+    under autocast, the losses in float32."""
     model.train()
-    pred_log = model.forward_log(batch["image"])
-    loss, parts = total_loss(pred_log, batch, **(weights or {}))
+    with torch.autocast(batch["image"].device.type, amp_dtype, enabled=amp_dtype is not None):
+        pred_log, sky_logit = model.forward_train(batch["image"])
+    pred_log = pred_log.float()
+    sky_logit = None if sky_logit is None else sky_logit.float()
+    loss, parts = total_loss(pred_log, batch, sky_logit=sky_logit, **(weights or {}))
     opt.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -63,6 +70,7 @@ def save_checkpoint(path: str | Path, model, opt, step: int, width: int, extra: 
             "opt": opt.state_dict(),
             "step": step,
             "width": width,
+            "sky": bool(getattr(model, "has_sky", False)),
             **(extra or {}),
         },
         tmp,

@@ -1,0 +1,214 @@
+"""Real-photo supervision (rectified_colmap.training.real) and the sky head / label losses.
+
+Geometry is tested exactly on synthetic cameras; the line-derived labels statistically on a
+rendered street with exact normals. The torch parts are skipped without torch."""
+
+import numpy as np
+import pycolmap
+import pytest
+from tests.scenes import plane_depth
+
+from rectified_colmap import synth
+from rectified_colmap.training import real
+from rectified_colmap.training.sky import NOT_SKY, SKY, UNKNOWN
+
+
+def _radial_camera(w=200, h=150, f=180.0, k=0.15):
+    return pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2, k])
+
+
+def test_cover_crop_affine_covers_and_centres():
+    for w, h, ow, oh in ((1024, 768, 320, 240), (768, 1024, 320, 240), (1024, 309, 320, 240)):
+        a = real.cover_crop_affine(w, h, ow, oh)
+        corners = np.array([[0, 0], [w, h]], float) @ a[:, :2].T + a[:, 2]
+        assert corners[0, 0] <= 1e-9 and corners[0, 1] <= 1e-9  # covers the output
+        assert corners[1, 0] >= ow - 1e-9 and corners[1, 1] >= oh - 1e-9
+        centre = np.array([w / 2, h / 2]) @ a[:, :2].T + a[:, 2]
+        assert np.allclose(centre, [ow / 2, oh / 2])
+
+
+def test_source_coords_undistort_exactly():
+    """The output is a pinhole view: a 3D point projected with the output K lands on the
+    pixel whose source position is the camera's (distorted) projection of that point."""
+    cam = _radial_camera()
+    a = real.cover_crop_affine(cam.width, cam.height, 64, 48)
+    xy, K = real.source_coords(cam, a, 64, 48)
+    X = np.array([[0.2, -0.1, 1.0], [-0.3, 0.2, 2.0]])
+    for p in X:
+        uv = K @ p
+        uv = uv[:2] / uv[2]
+        r, c = int(uv[1]), int(uv[0])
+        centre = np.array([c + 0.5, r + 0.5])  # COLMAP pixel centre
+        ray = np.linalg.inv(K) @ np.array([*centre, 1.0])
+        assert np.allclose(xy[r, c], cam.img_from_cam(ray[None])[0], atol=1e-9)
+    xy0, K0 = real.source_coords(None, a, 64, 48)  # no camera: the affine crop
+    assert np.isnan(K0).all()
+    back = xy0 @ a[:, :2].T + a[:, 2]
+    v, u = np.mgrid[:48, :64] + 0.5
+    assert np.allclose(back, np.stack([u, v], -1))
+
+
+def test_sparse_depth_nearest_point_wins():
+    K = np.array([[50.0, 0, 16], [0, 50, 12], [0, 0, 1]])
+    pose = pycolmap.Rigid3d()
+    pts = np.array([[0.0, 0.0, 4.0], [0.0, 0.0, 2.0], [0.2, 0.1, 3.0], [0.0, 0.0, -1.0]])
+    d = real.sparse_depth_map(pts, pose, K, 32, 24)
+    assert d[12, 16] == 2.0  # two points on one pixel: the nearer one
+    u, v = 50 * 0.2 / 3 + 16, 50 * 0.1 / 3 + 12
+    assert d[int(v), int(u)] == 3.0
+    assert (d > 0).sum() == 2  # the point behind the camera is dropped
+
+
+def test_focal_from_horizon_and_zenith():
+    f, pp = 700.0, np.array([320.0, 240.0])
+    for tilt in (5.0, 20.0, 40.0):
+        t = np.deg2rad(tilt)
+        up = np.array([0.0, -np.cos(t), np.sin(t)])  # camera pitched up by `tilt`
+        K = np.array([[f, 0, pp[0]], [0, f, pp[1]], [0, 0, 1]])
+        z = K @ up
+        zenith = z[:2] / z[2]
+        horizon = np.linalg.inv(K).T @ up  # the vanishing line of planes normal to `up`
+        assert real.focal_from_horizon_zenith(horizon, zenith, pp) == pytest.approx(f, 1e-9)
+
+
+def test_save_load_roundtrip(tmp_path):
+    rng = np.random.default_rng(0)
+    h, w = 24, 32
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[:10] = [0, 0, -1.0]
+    normals[15:] = [0.6, 0, -0.8]
+    depth = np.zeros((h, w), np.float32)
+    depth[3, 4], depth[20, 30] = 2.5, 7.0
+    s = {
+        "image": rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
+        "K": np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]]),
+        "depth": depth,
+        "normals": normals,
+        "sky": np.where(np.arange(h)[:, None] < 5, SKY, UNKNOWN).astype(np.uint8)
+        * np.ones((1, w), np.uint8),
+        "frame": np.eye(3),
+        "name": "x.jpg",
+    }
+    real.save_real_sample(tmp_path / "a.npz", s)
+    t = real.load_real_sample(tmp_path / "a.npz")
+    assert np.array_equal(t["depth"], depth) and np.array_equal(t["normals"], normals)
+    assert np.array_equal(t["sky"], s["sky"]) and np.array_equal(t["K"], s["K"])
+    assert t["image"].shape == (h, w, 3) and t["name"] == "x.jpg"
+    (tmp_path / "bad.npz").write_bytes(b"nope")
+    with pytest.raises(ValueError, match="bad.npz"):
+        real.load_real_sample(tmp_path / "bad.npz")
+
+
+def test_line_labels_match_rendered_normals(tmp_path):
+    """On a rendered street (exact normals), the line-support labels that make it into a
+    real sample point where the surfaces do."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    scene = synth.street(rng)
+    cam = synth.pinhole_camera(640, 480, 500.0)
+    good = 0
+    for _ in range(3):
+        pose = synth.random_view(scene, rng, cam)
+        r = synth.render(scene, cam, pose)
+        path = tmp_path / "v.png"
+        cv2.imwrite(str(path), r.image[..., ::-1])
+        s = real.make_real_sample(real.RealItem(path, cam), 160, 120)
+        has = np.abs(s["normals"]).sum(-1) > 0
+        if has.mean() < 0.05:
+            continue
+        a = real.cover_crop_affine(640, 480, 160, 120)
+        xy, _ = real.source_coords(cam, a, 160, 120)
+        gt = r.normals[
+            np.clip(xy[..., 1].astype(int), 0, 479), np.clip(xy[..., 0].astype(int), 0, 639)
+        ]
+        ok = has & np.isfinite(gt).all(-1)
+        cos = (s["normals"][ok] * gt[ok]).sum(-1)
+        assert np.mean(cos > np.cos(np.deg2rad(5))) > 0.7, np.mean(cos > 0.99)
+        assert (s["sky"][has] == NOT_SKY).all()
+        good += 1
+    assert good >= 1
+
+
+# -- torch: losses, sky head ----------------------------------------------------------------
+def test_label_normal_and_sky_losses():
+    torch = pytest.importorskip("torch")
+    from rectified_colmap.training import losses
+
+    n = np.array([0.3, -0.4, -0.8])
+    n /= np.linalg.norm(n)
+    K = np.array([[80.0, 0, 50], [0, 80, 30], [0, 0, 1]])
+    h, w = 60, 100
+    log_z = torch.from_numpy(np.log(plane_depth(n, K, h, w)))[None, None]
+    Kt = torch.from_numpy(K)[None]
+    labels = torch.zeros(1, 3, h, w, dtype=torch.float64)
+    labels[:, :, 10:40, 20:70] = torch.from_numpy(n)[None, :, None, None]
+    one = torch.ones(1, dtype=torch.float64)
+    assert losses.label_normal_loss(log_z, labels, Kt, one) < 1e-12
+    wrong = torch.zeros_like(labels)
+    wrong[:, 2, 10:40, 20:70] = -1.0  # fronto-parallel label on a tilted plane
+    got = float(losses.label_normal_loss(log_z, wrong, Kt, one))
+    assert got == pytest.approx(1 - n[2] * -1.0, abs=1e-9)
+    assert losses.label_normal_loss(log_z, wrong, Kt, 0 * one) == 0  # renders: not used
+    sky = torch.full((1, 1, 4, 4), 255.0)
+    sky[..., :2, :] = 1.0
+    sky[..., 3, :] = 0.0
+    logit = torch.zeros(1, 1, 4, 4)
+    logit[..., :2, :] = 20.0
+    logit[..., 3, :] = -20.0
+    logit[..., 2, :] = 5.0  # unknown row: ignored whatever its value
+    assert losses.sky_loss(logit, sky) < 1e-8
+    assert losses.sky_loss(-logit, sky) > 10
+
+
+def test_sky_head_zeroes_depth():
+    torch = pytest.importorskip("torch")
+    from rectified_colmap.training.model import DepthNet
+
+    net = DepthNet(width=16, sky=True).eval()
+    x = torch.zeros(1, 3, 64, 96)
+    with torch.no_grad():
+        net.sky_head[-1].bias.fill_(-50.0)
+        assert (net(x) > 0).all()
+        net.sky_head[-1].bias.fill_(50.0)
+        assert (net(x) == 0).all()
+        log, sky = net.forward_train(x)
+        assert log.shape == sky.shape == (1, 1, 64, 96)
+    assert DepthNet(width=16).forward_train(x)[1] is None
+
+
+def test_pool_dataset_mixes_real_samples(tmp_path):
+    pytest.importorskip("torch")
+    from rectified_colmap.training.data import PoolDataset, synth_sample
+
+    h, w = 60, 80
+    sky = np.full((h, w), UNKNOWN, np.uint8)
+    sky[:10, :40] = SKY
+    s = {
+        "image": np.full((h, w, 3), 128, np.uint8),
+        "K": np.full((3, 3), np.nan),
+        "depth": np.zeros((h, w), np.float32),
+        "normals": np.zeros((h, w, 3), np.float32),
+        "sky": sky,
+        "frame": np.full((3, 3), np.nan),
+        "name": "r",
+    }
+    real.save_real_sample(tmp_path / "r.npz", s)
+    render = tmp_path / "pool"
+    render.mkdir()
+    r = synth_sample(3, w, h, None, supersample=1)
+    np.savez(render / "00000003.npz", **{k: r[k] for k in ("image", "depth", "normals", "K")})
+    ds = PoolDataset(
+        [], 48, 64, real_paths=[tmp_path / "r.npz"], real_frac=0.5, pool_dir=render, length=40
+    )
+    kinds = [float(ds[i]["real"]) for i in range(40)]
+    assert 5 < sum(kinds) < 35
+    for i in range(40):
+        item = ds[i]
+        assert np.isfinite(item["K"].numpy()).all()  # camera-less photos get a valid K
+        v = set(np.unique(item["sky"].numpy()).tolist())
+        if float(item["real"]):
+            assert v <= {0.0, 1.0, 255.0} and 1.0 in v
+        else:  # renders: sky exactly where there is no depth
+            assert v <= {0.0, 1.0}
+            assert np.array_equal(item["sky"].numpy() == 1, item["depth"].numpy() <= 0)
