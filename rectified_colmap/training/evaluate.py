@@ -14,6 +14,8 @@ reference, on the exact rendered depth. Reported (medians over views):
   (:func:`rectified_colmap.planes.fit_dominant_directions`) to the predicted normals of the
   angle to the nearest (sign-free) true scene axis; ``dir_err_gtdepth`` the same from the
   exact depth.
+Ground-truth frames (``--york REAL_POOL``): the same per image against York Urban's
+hand-labelled Manhattan frames, ECCV08 test split (never used in training).
 Timing: seconds per 1536x1024 image through OnnxDepthSource (1 and 2 threads).
 
 Real photos (``--real SCENE_DIR ...``, COLMAP scenes with ``images/`` and ``sparse/``, e.g.
@@ -109,18 +111,52 @@ def evaluate(
     return out
 
 
+def image_directions(depth_map, camera, conf) -> tuple[np.ndarray | None, np.ndarray]:
+    """The pipeline's view of one depth map -> (fitted dominant directions (3, 3) or None,
+    valid normals (N, 3)): disparity resolved, normals at the work size, directions fitted
+    as extraction does."""
+    from ..disparity import resolve_disparity
+    from ..normals import depth_to_normals
+
+    depth = resolve_disparity(depth_map, camera, conf)
+    n = depth_to_normals(depth, camera, conf.normals).reshape(-1, 3)
+    n = n[np.isfinite(n).all(1)]
+    dirs, _ = fit_dominant_directions(n, conf.planes, np.random.default_rng(0))
+    return dirs, n
+
+
+def _row(name: str, axes: np.ndarray, dirs, n: np.ndarray, agree_deg: float) -> dict:
+    cos = np.abs(n @ axes.T).max(1) if len(n) else np.zeros(0)
+    return {
+        "image": name,
+        "dir_err": direction_error(axes, dirs) if dirs is not None else 90.0,
+        "agree": float(np.mean(cos > np.cos(np.deg2rad(agree_deg)))) if len(n) else 0.0,
+    }
+
+
+def _summary(rows: list[dict], prefix: str) -> dict:
+    return {
+        f"{prefix}_images": len(rows),
+        f"{prefix}_dir_err_median": float(np.median([r["dir_err"] for r in rows])),
+        f"{prefix}_dir_err_mean": float(np.mean([r["dir_err"] for r in rows])),
+        f"{prefix}_dir_err_le5": float(np.mean([r["dir_err"] <= 5.0 for r in rows])),
+        f"{prefix}_agree_median": float(np.median([r["agree"] for r in rows])),
+        "rows": rows,
+    }
+
+
 def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
     """Dominant directions and normals of a depth source vs the line-derived Manhattan frame,
     on the images of COLMAP scene folders (``images/``, ``sparse/``).
 
     ``depth_for(path, rgb)`` -> DepthMap of one image (rgb: (H, W, 3) uint8). Images without
-    a confident line frame are skipped. Returns medians/means over images and ``rows``."""
+    a confident line frame are skipped. Per image: ``dir_err`` = mean over the confident
+    line axes of the angle to the nearest fitted direction; ``agree`` = fraction of the
+    normals within ``agree_deg`` of a confident axis. Returns medians/means and ``rows``."""
     import cv2
     import pycolmap
 
     from ..config import ExtractConf
-    from ..disparity import resolve_disparity
-    from ..normals import depth_to_normals
     from ..vp.fusion import manhattan_from_image
 
     conf = ExtractConf()
@@ -136,34 +172,65 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
             vp = manhattan_from_image(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), camera, conf.vp)
             if vp.directions is None:
                 continue  # no reference frame for this image
-            axes = vp.directions[vp.snapped]
             rgb = np.ascontiguousarray(bgr[..., ::-1])
-            depth = resolve_disparity(depth_for(path, rgb), camera, conf)
-            n = depth_to_normals(depth, camera, conf.normals).reshape(-1, 3)
-            n = n[np.isfinite(n).all(1)]
-            dirs, _ = fit_dominant_directions(n, conf.planes, np.random.default_rng(0))
-            cos = np.abs(n @ axes.T).max(1)
+            dirs, n = image_directions(depth_for(path, rgb), camera, conf)
             rows.append(
-                {
-                    "image": f"{scene.name}/{image.name}",
-                    "dir_err": direction_error(axes, dirs) if dirs is not None else 90.0,
-                    "agree": float(np.mean(cos > np.cos(np.deg2rad(agree_deg)))) if len(n) else 0.0,
-                }
+                _row(f"{scene.name}/{image.name}", vp.directions[vp.snapped], dirs, n, agree_deg)
             )
             logger.info(
-                "%s: %s",
+                "%s: dir_err %.2f agree %.3f",
                 rows[-1]["image"],
-                {k: round(v, 3) for k, v in rows[-1].items() if k != "image"},
+                rows[-1]["dir_err"],
+                rows[-1]["agree"],
             )
     if not rows:
         raise ValueError(f"no image with a confident line frame in {list(map(str, scene_dirs))}")
-    return {
-        "real_images": len(rows),
-        "real_dir_err_median": float(np.median([r["dir_err"] for r in rows])),
-        "real_dir_err_mean": float(np.mean([r["dir_err"] for r in rows])),
-        "real_agree_median": float(np.median([r["agree"] for r in rows])),
-        "rows": rows,
-    }
+    return _summary(rows, "real")
+
+
+def york_test_items(root: str | Path, sets=("yorkurban",)) -> list[tuple[Path, object, np.ndarray]]:
+    """York Urban images of the ECCV08 TEST split (never trained on) -> (path, camera,
+    ground-truth Manhattan frame (3, 3), rows = axes in the camera frame, y down)."""
+    from .real import camera_from_record
+
+    root = Path(root)
+    items = []
+    for name in sets:
+        recs = json.loads((root / name / "cameras.json").read_text())
+        gt = json.loads((root / name / "gt" / "gt_vps.json").read_text())["images"]
+        for fname, rec in sorted(recs.items()):
+            g = gt.get(Path(fname).stem)
+            if g is None or g.get("eccv_split") != "test":
+                continue
+            F = np.array(g["vp_orthogonal"], np.float64).T  # rows = VP directions, y up
+            F[:, 1] *= -1
+            items.append((root / name / "images" / fname, camera_from_record(rec), F))
+    return items
+
+
+def evaluate_gt_frames(depth_for, items, agree_deg: float = 15.0) -> dict:
+    """Dominant directions of a depth source vs GROUND-TRUTH Manhattan frames (York Urban:
+    hand-labelled segments, orthogonalised VPs): ``items`` from :func:`york_test_items`.
+    Per image ``dir_err`` = mean over the three true axes of the angle to the nearest
+    fitted direction; ``agree`` as in :func:`evaluate_real`."""
+    import cv2
+
+    from ..config import ExtractConf
+
+    conf = ExtractConf()
+    rows = []
+    for path, camera, F in items:
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"{path}: cannot read image")
+        rgb = np.ascontiguousarray(bgr[..., ::-1])
+        dirs, n = image_directions(depth_for(path, rgb), camera, conf)
+        rows.append(
+            _row(f"{Path(path).parent.parent.name}/{Path(path).name}", F, dirs, n, agree_deg)
+        )
+    if not rows:
+        raise ValueError("no ground-truth frames to evaluate against")
+    return _summary(rows, "york")
 
 
 def time_inference(
@@ -195,12 +262,20 @@ def main(argv=None) -> int:
         default=[],
         help="COLMAP scene folders (images/, sparse/) of real photos",
     )
+    p.add_argument(
+        "--york",
+        type=Path,
+        default=None,
+        help="real-pool folder: score against York Urban's ground-truth frames (test split)",
+    )
     p.add_argument("--output", type=Path, default=None, help="JSON of the results")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    res = evaluate(
-        args.model, args.num, args.seed, texture_dir=args.texture_dir, threads=args.threads
-    )
+    res = {}
+    if args.num > 0:
+        res = evaluate(
+            args.model, args.num, args.seed, texture_dir=args.texture_dir, threads=args.threads
+        )
     if args.real:
         from ..depth.onnx import OnnxDepthSource
 
@@ -210,6 +285,15 @@ def main(argv=None) -> int:
         real = evaluate_real(lambda path, rgb: src(rgb), args.real)
         real.pop("rows")
         res.update(real)
+    if args.york:
+        from ..depth.onnx import OnnxDepthSource
+
+        src = OnnxDepthSource(
+            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
+        )
+        york = evaluate_gt_frames(lambda path, rgb: src(rgb), york_test_items(args.york))
+        york.pop("rows")
+        res.update(york)
     if args.timing:
         for t in (1, 2):
             res[f"time_1536x1024_{t}thread_s"] = time_inference(args.model, t)
