@@ -3,7 +3,8 @@
 # in ~8 minutes of wall time. Run from the repository root; needs, in outputs/carry/ (made
 # here, see docs/training.md): effnet_lite0_encoder_fp16.pt (ImageNet encoder),
 # real_pool/ (scripts/build_real_pool.py), textures/ (facade photos); and, where pycolmap
-# is missing, its wheel in .whl/. Writes to $OUT/run (default /tmp/rectsift_gpu).
+# is missing, its wheel in .whl/. Writes to $OUT/run (default /tmp/rectsift_gpu). Extra
+# arguments go to scripts/train_depth.py (later ones win, e.g. --real_frac 0.5).
 set -euo pipefail
 OUT=${OUT:-/tmp/rectsift_gpu}
 MINUTES=${MINUTES:-7.0}
@@ -21,4 +22,4 @@ python3 scripts/train_depth.py --device cuda --amp --out "$OUT/run" \
   --texture_dir outputs/carry/textures --stream --render_background 5 --workers 10 \
   --sky --real_pool outputs/carry/real_pool --real_frac 0.3 \
   --encoder_weights outputs/carry/effnet_lite0_encoder_fp16.pt \
-  --threads 4 --log_every 100 --ckpt_every 1000 --export_every 1000 --fp16_storage
+  --threads 4 --log_every 100 --ckpt_every 1000 --export_every 1000 --fp16_storage "$@"
