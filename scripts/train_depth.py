@@ -210,7 +210,7 @@ def main(argv=None) -> int:
         prefetch_factor=4 if args.workers else None,
         pin_memory=device.type == "cuda",
     )
-    spec = model_spec(args.export_max_side)
+    spec = model_spec(args.export_max_side, sky=args.sky)
 
     def export(tag):
         te = time.time()
@@ -237,12 +237,16 @@ def main(argv=None) -> int:
     weights = {"w_lines": args.w_lines, "w_sky": args.w_sky}
 
     def save_weights(step):
-        """Weights only, fp16 (half the size; load_checkpoint casts back), atomically."""
+        """Weights only, atomically: parameters in fp16 (half the size; load_checkpoint
+        casts back), BatchNorm statistics in fp32 (export folds them into the weights)."""
         tmp = args.out / "weights_fp16.tmp"
         state = {k: v.detach().to("cpu") for k, v in model.state_dict().items()}
         torch.save(
             {
-                "model": {k: v.half() if v.is_floating_point() else v for k, v in state.items()},
+                "model": {
+                    k: v.half() if v.is_floating_point() and "running_" not in k else v
+                    for k, v in state.items()
+                },
                 "step": step,
                 "width": args.decoder_width,
                 "sky": args.sky,

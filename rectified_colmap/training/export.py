@@ -20,7 +20,8 @@ MODEL_NAME = "rectsift-depth-lite0"
 EXPORTER = Path(__file__).resolve().parents[2] / "scripts" / "export_depth_onnx.py"
 
 
-def model_spec(max_side: int = 384, description: str = "") -> ModelSpec:
+def model_spec(max_side: int = 384, description: str = "", sky: bool = True) -> ModelSpec:
+    """The contract of the project's network (``sky``: its graph outputs depth 0 on sky)."""
     return ModelSpec(
         input_name="image",
         output_name="depth",
@@ -32,11 +33,14 @@ def model_spec(max_side: int = 384, description: str = "") -> ModelSpec:
         resize={"mode": "keep_aspect", "max_side": int(max_side), "multiple_of": 32},
         output="depth",
         name=MODEL_NAME,
-        licence="Apache-2.0 (encoder: EfficientNet-Lite0 ImageNet weights, Apache-2.0); "
-        "trained by rectified_colmap on procedural renders",
+        licence="BSD-3-Clause (encoder initialised from EfficientNet-Lite0 ImageNet weights, "
+        "Apache-2.0); trained by rectified_colmap on procedural renders and real photos "
+        "(data and their terms: docs/training.md)",
         description=description
-        or "EfficientNet-Lite0 + fusion decoder, trained on "
-        "synthetic street scenes; positive z-depth up to scale, for normals and planes",
+        or "EfficientNet-Lite0 + fusion decoder trained on synthetic street scenes and real "
+        "photos (sparse SfM depth, line-derived orientations); positive z-depth up to "
+        "scale, for normals and planes"
+        + ("; 0 where its sky head sees sky (no depth, no plane)" if sky else ""),
     )
 
 
