@@ -75,9 +75,9 @@ register_model(
     ModelEntry(
         name="rectsift-lite0",
         filename="rectsift-depth-lite0.onnx",
-        licence="Apache-2.0",
+        licence="BSD-3-Clause",
         description="embedded default: EfficientNet-Lite0 U-Net trained by this project on "
-        "rendered street scenes (z-depth up to scale)",
+        "rendered street scenes and real photos (z-depth up to scale, 0 on sky)",
         approx_mb=None,
     )
 )
