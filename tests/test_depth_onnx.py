@@ -273,3 +273,23 @@ def test_export_script_round_trip(tmp_path, precision):
         graph = onnx.load(str(out)).graph
         casts = [n for n in graph.node if n.op_type == "Cast"]
         assert casts and all(n.attribute[0].i == TensorProto.FLOAT for n in casts)
+
+
+def test_embedded_network_gives_no_depth_on_sky():
+    """The shipped network's sky head (docs/training.md, stage 3): on held-out renders
+    (seeds never in a training pool) the true sky has no depth, surfaces keep theirs."""
+    from rectified_colmap import synth
+    from rectified_colmap.depth.registry import model_path
+
+    src = OnnxDepthSource(model_path("rectsift-lite0"), num_threads=1)
+    checked = 0
+    for seed in (900_000_000, 900_000_003, 900_000_005):
+        r = synth.random_sample(np.random.default_rng(seed), 384, 288, None, 1)
+        sky = ~np.isfinite(r.depth)
+        assert sky.mean() > 0.1  # these views show sky
+        no_depth = ~np.isfinite(src(r.image).to_depth())
+        assert no_depth.shape == sky.shape
+        assert no_depth[sky].mean() > 0.9, seed
+        assert no_depth[~sky].mean() < 0.02, seed
+        checked += 1
+    assert checked == 3
