@@ -93,6 +93,11 @@ def test_oblique_patch_keeps_the_rectified_twin_frontal_keeps_plain():
             assert np.all((both.patch[keep] >= 0) == rect_wins)
 
 
+def _rows_of(plain, kept):
+    """Sorted indices of the plain features whose keypoints ``kept`` holds (exact rows)."""
+    return np.sort([np.flatnonzero((plain.keypoints == k).all(1))[0] for k in kept.keypoints])
+
+
 def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
     rng = np.random.default_rng(4)
     n = 200
@@ -131,7 +136,7 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
     # The 30 twins removed, then the 20 smallest remaining plain scales.
     rest = np.setdiff1d(np.arange(n), tw)
     expect = np.sort(rest[np.argsort(-plain.scales[rest], kind="stable")[:150]])
-    got = np.sort([np.flatnonzero((plain.keypoints == k).all(1))[0] for k in kept_plain.keypoints])
+    got = _rows_of(plain, kept_plain)
     np.testing.assert_array_equal(got, expect)
     # Patches that yield nothing leave the whole budget to plain SIFT.
     assert len(fill_from_plain(Features.empty(), plain, 150, DedupConf())) == 150
@@ -143,8 +148,9 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
         assert cap == round(n * (1 + extra))
         out = fill_from_plain(rect, plain, cap, DedupConf())
         assert (out.patch >= 0).sum() == 50 and (out.patch < 0).sum() == num_plain
-        kept = plain.scales[np.isin(plain.keypoints, out.keypoints).all(1)]
-        assert kept.min() >= np.sort(plain.scales[rest])[::-1][num_plain - 1]
+        got = _rows_of(plain, out.subset(out.patch < 0))
+        expect = np.sort(rest[np.argsort(-plain.scales[rest], kind="stable")[:num_plain]])
+        np.testing.assert_array_equal(got, expect)  # the largest remaining plain scales
 
 
 K = np.array([[420.0, 0, 240], [0, 420, 180], [0, 0, 1]])
