@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import io
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,13 +31,17 @@ import cv2
 import numpy as np
 import pycolmap
 
+from .. import camera as cam_utils
 from ..config import VpConf
-from ..conventions import OFFSET
+from ..conventions import (
+    from_opencv_points,
+    pixel_centers,
+    to_opencv_homography,
+    to_opencv_points,
+)
 from ..vp.fusion import manhattan_from_image
 from ..vp.line_planes import line_support_patches
 from .sky import NOT_SKY, SKY, UNKNOWN
-
-logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -74,9 +77,8 @@ def source_coords(
     the camera's focal lengths and principal point, and the source position of a pixel is
     the camera's projection of its ray (distortion included). Without one, the output is
     the affine crop (K all NaN)."""
-    v, u = np.mgrid[:out_h, :out_w] + OFFSET
     A = np.vstack([a, [0.0, 0.0, 1.0]])
-    uv1 = np.stack([u, v, np.ones_like(u)], -1)
+    uv1 = np.concatenate([pixel_centers(out_w, out_h), np.ones((out_h, out_w, 1))], -1)
     if camera is None:
         return uv1 @ np.linalg.inv(A)[:2].T, np.full((3, 3), np.nan)
     fx, fy = camera.focal_length_x, camera.focal_length_y
@@ -97,7 +99,7 @@ def resample(image: np.ndarray, xy: np.ndarray, scale: float) -> np.ndarray:
         w2, h2 = max(1, round(W * scale)), max(1, round(H * scale))
         image = cv2.resize(image, (w2, h2), interpolation=cv2.INTER_AREA)
         xy = xy * np.array([w2 / W, h2 / H])
-    m = (xy - OFFSET).astype(np.float32)
+    m = to_opencv_points(xy).astype(np.float32)
     return cv2.remap(image, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
@@ -158,8 +160,7 @@ def line_normal_map(
 def map_line(line: np.ndarray, a: np.ndarray) -> np.ndarray:
     """A line (a, b, c), a x + b y + c = 0 in 0-based source pixels, through the COLMAP
     affine ``a`` -> the same line in 0-based output pixels (0-based = COLMAP - 0.5)."""
-    T = np.array([[1, 0, OFFSET], [0, 1, OFFSET], [0, 0, 1.0]])
-    M = np.linalg.inv(T) @ np.vstack([a, [0.0, 0.0, 1.0]]) @ T
+    M = to_opencv_homography(np.vstack([a, [0.0, 0.0, 1.0]]))  # 0-based -> 0-based
     return np.linalg.inv(M).T @ np.asarray(line, np.float64)
 
 
@@ -268,16 +269,6 @@ def load_real_sample(path: str | Path) -> dict:
 
 
 # -- the real-pool sets --------------------------------------------------------------------
-def pinhole_camera(width: int, height: int, focal: float, cx=None, cy=None) -> pycolmap.Camera:
-    """SIMPLE_PINHOLE camera (COLMAP convention) with a centred principal point by default."""
-    return pycolmap.Camera(
-        model="SIMPLE_PINHOLE",
-        width=width,
-        height=height,
-        params=[focal, width / 2 if cx is None else cx, height / 2 if cy is None else cy],
-    )
-
-
 def focal_from_horizon_zenith(horizon: np.ndarray, zenith: np.ndarray, pp: np.ndarray) -> float:
     """Focal (px) from the horizon line (a, b, c) and the zenith vanishing point (x, y): the
     vertical direction at angle t from the optical axis has its vanishing point f tan t from
@@ -295,16 +286,12 @@ def camera_from_record(rec: dict, focal: float | None = None) -> pycolmap.Camera
     f = rec.get("focal_px") if focal is None else focal
     if f is None or not np.isfinite(f):
         return None
-    cx = rec.get("cx")
-    cy = rec.get("cy")
-    # cameras.json gives cx, cy 0-based where present; COLMAP's are +0.5
-    return pinhole_camera(
-        rec["width"],
-        rec["height"],
-        float(f),
-        None if cx is None else cx + OFFSET,
-        None if cy is None else cy + OFFSET,
-    )
+    w, h = rec["width"], rec["height"]
+    if rec.get("cx") is None or rec.get("cy") is None:
+        pp = np.array([w / 2, h / 2])
+    else:  # cameras.json gives a calibrated principal point 0-based
+        pp = from_opencv_points(np.array([rec["cx"], rec["cy"]], np.float64))
+    return cam_utils.make_camera("SIMPLE_PINHOLE", [float(f), *pp], w, h)
 
 
 def items_from_model(set_dir: Path) -> list[RealItem]:
@@ -361,7 +348,7 @@ def real_pool_items(root: str | Path) -> list[RealItem]:
         if int(Path(fname).stem) % 2:
             continue
         g = hz["images"][fname]
-        pp = np.array([rec["width"], rec["height"]]) / 2 - OFFSET
+        pp = to_opencv_points(np.array([rec["width"], rec["height"]]) / 2)  # the horizon's frame
         f = focal_from_horizon_zenith(g["horizon_abc_out"], g["zenith_xy_out"], pp)
         ok = 0.5 * max(rec["width"], rec["height"]) <= f <= 2.5 * max(rec["width"], rec["height"])
         cam = camera_from_record(rec, f) if ok else None
