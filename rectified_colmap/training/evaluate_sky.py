@@ -39,15 +39,18 @@ import cv2
 import numpy as np
 import pycolmap
 
+from .. import camera as cam_utils
 from ..config import ExtractConf
 from ..depth import DepthMap
 from ..disparity import resolve_disparity
 from ..normals import depth_to_normals
 from ..planes import detect_planes
+from .sky import NOT_SKY, SKY, UNKNOWN
 
 logger = logging.getLogger(__name__)
 
-SKY, NOT_SKY, IGNORE = 1, 0, 255
+IGNORE = UNKNOWN
+"""Mask value of pixels left out of the metric (the pseudo-labels' UNKNOWN)."""
 DEFAULT_DATA = Path("/work/shared/data")
 GUESS_FOCAL = 1.2
 """Focal of the guessed camera, times the longer side (COLMAP's default without EXIF)."""
@@ -56,12 +59,7 @@ GUESS_FOCAL = 1.2
 def guess_camera(width: int, height: int) -> pycolmap.Camera:
     """SIMPLE_PINHOLE, focal GUESS_FOCAL * max(W, H), principal point at the centre."""
     f = GUESS_FOCAL * max(width, height)
-    return pycolmap.Camera(
-        model="SIMPLE_PINHOLE",
-        width=int(width),
-        height=int(height),
-        params=[f, width / 2.0, height / 2.0],
-    )
+    return cam_utils.make_camera("SIMPLE_PINHOLE", [f, width / 2.0, height / 2.0], width, height)
 
 
 def plane_labels(
