@@ -119,10 +119,14 @@ class SiftConf:
     max_image_size: int = 3200
     """Images larger than this are downscaled for SIFT (COLMAP's default)."""
     patch_first_octave: int = -1
-    """first_octave inside rectified patches. 0 costs ~4x less there and gave the same
-    matches on Strecha (1536x1024), but a third fewer correct matches on 480x360 renders;
-    with -1, ``coarse_first`` already skips the upsampled octave in large patches
-    (docs/benchmarks.md)."""
+    """first_octave inside the rectified patches of images with fewer than
+    ``patch_octave0_pixels_per_feature`` pixels per budgeted feature (small images); with
+    -1, ``coarse_first`` still skips the upsampled octave in large patches."""
+    patch_octave0_pixels_per_feature: float = float("inf")
+    """From this many pixels per budgeted feature up (the image after ``max_image_size``,
+    ``max_num_features``), patches start at octave 0: they are already enlarged so that no
+    pixel shrinks, and the upsampled octave costs ~3/4 of their SIFT time
+    (features.patch_first_octave; inf: always ``patch_first_octave``)."""
     coarse_first: bool = True
     """Where an image has at least ``coarse_first_pixels_per_feature`` pixels per budgeted
     feature (after ``max_image_size``), its coarser octaves fill the budget and COLMAP would
@@ -287,6 +291,15 @@ class ExtractConf:
             if hasattr(sub, "__post_init__"):  # the section's own validation
                 sub.__post_init__()
         return out
+
+
+def merge_conf(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """A nested conf dict (e.g. ``confs[name]``) with ``overrides`` on top, section by
+    section; neither input is changed."""
+    out = {section: dict(values) for section, values in base.items()}
+    for section, values in (overrides or {}).items():
+        out.setdefault(section, {}).update(values)
+    return out
 
 
 # hloc-style named configurations.

@@ -271,6 +271,18 @@ def coarse_first_pays(
     )
 
 
+def patch_first_octave(
+    shape: tuple[int, int], max_num_features: int, conf: SiftConf = SiftConf()
+) -> int:
+    """first_octave of SIFT in the rectified patches of an image of ``shape`` (h, w) with
+    this budget: 0 from ``conf.patch_octave0_pixels_per_feature`` pixels per feature up
+    (after SIFT's downscaling to ``conf.max_image_size``), else ``conf.patch_first_octave``."""
+    w, h = sift_input_size(shape[1], shape[0], conf)
+    if w * h >= conf.patch_octave0_pixels_per_feature * max(1, max_num_features):
+        return max(0, conf.patch_first_octave)
+    return conf.patch_first_octave
+
+
 def sift_input_size(width: int, height: int, conf: SiftConf = SiftConf()) -> tuple[int, int]:
     """(w, h) of the image SIFT sees: downscaled to ``conf.max_image_size`` when larger,
     as COLMAP does (``geometry.scaled_size``, at least 1 px a side)."""
@@ -355,16 +367,20 @@ def rectified_features(
     budget: int,
     conf: SiftConf,
     border: int,
+    first_octave: int | None = None,
 ) -> Features:
-    """SIFT inside one rectified patch (``budget`` features, ``conf.patch_first_octave``),
-    mapped back to the original image; features closer than ``border`` rectified pixels to
-    the border of the warped region are dropped. ``index`` is their source."""
+    """SIFT inside one rectified patch (``budget`` features, ``first_octave``, by default
+    ``patch_first_octave`` of the whole image ``gray`` with ``conf``), mapped back to the
+    original image; features closer than ``border`` rectified pixels to the border of the
+    warped region are dropped. ``index`` is their source."""
+    if first_octave is None:
+        first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
     patch_img = warp_to_rectified(gray, camera, rect)
     feats = detect_sift(
         patch_img,
         conf,
         budget,
-        conf.patch_first_octave,
+        first_octave,
         coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
     )
     if len(feats) == 0:

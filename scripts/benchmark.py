@@ -30,6 +30,7 @@ of the same runs. ``--clock wall`` measures every column in wall seconds.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -44,7 +45,12 @@ import numpy as np  # noqa: E402
 
 from rectified_colmap import camera as cam_utils  # noqa: E402
 from rectified_colmap import features, pipeline  # noqa: E402
-from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs  # noqa: E402
+from rectified_colmap.config import (  # noqa: E402
+    DEFAULT_DEPTH_MODEL,
+    ExtractConf,
+    confs,
+    merge_conf,
+)
 from rectified_colmap.depth import DepthMap  # noqa: E402
 from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
 from rectified_colmap.io.images import list_images, read_image  # noqa: E402
@@ -187,6 +193,11 @@ def main(argv=None) -> int:
         help="features.retain_freed_memory() first (both methods)",
     )
     p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
+    p.add_argument(
+        "--rect_conf",
+        help="JSON overrides on top of --conf, e.g. "
+        '\'{"sift": {"patch_octave0_pixels_per_feature": 100}}\'',
+    )
     p.add_argument("--no_asift", action="store_true", help="skip the (slow) ASIFT anchor")
     p.add_argument(
         "--clock",
@@ -203,7 +214,8 @@ def main(argv=None) -> int:
         Clock.perf_counter = staticmethod(time.perf_counter)
     # the pipeline's stage timings on the same clock
     pipeline.time = types.SimpleNamespace(perf_counter=Clock.perf_counter)
-    conf = ExtractConf.from_dict(confs[args.conf])
+    overrides = json.loads(args.rect_conf) if args.rect_conf else None
+    conf = ExtractConf.from_dict(merge_conf(confs[args.conf], overrides))
     if args.coarse_first and args.exact_sift:
         p.error("--coarse_first or --exact_sift, not both")
     if args.coarse_first or args.exact_sift:
@@ -227,7 +239,9 @@ def main(argv=None) -> int:
         f"coarse_first={conf.sift.coarse_first} "
         f"(>= {conf.sift.coarse_first_pixels_per_feature:g} px/feature); "
         f"retain_memory={args.retain_memory}; "
-        f"patch_first_octave={conf.sift.patch_first_octave}"
+        f"patch_first_octave={conf.sift.patch_first_octave} "
+        f"(0 from {conf.sift.patch_octave0_pixels_per_feature:g} px/feature); "
+        f"rect_conf={overrides}"
     )
     rows = []
     print("| image | WxH | " + " | ".join(COLUMNS) + " |")

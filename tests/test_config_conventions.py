@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import conventions
-from rectified_colmap.config import DISPARITY_SHIFTS, DepthConf, ExtractConf, confs
+from rectified_colmap.config import DISPARITY_SHIFTS, DepthConf, ExtractConf, confs, merge_conf
 
 
 def test_conf_from_dict_merges_and_rejects_unknown():
@@ -17,6 +17,20 @@ def test_conf_from_dict_merges_and_rejects_unknown():
         ExtractConf.from_dict({"nope": {}})
     for name in confs:
         ExtractConf.from_dict(confs[name])
+
+
+def test_merge_conf_overrides_key_by_key_and_changes_no_input():
+    base = confs["rectsift-plus"]
+    before = {section: dict(values) for section, values in base.items()}
+    overrides = {"vp": {"line_hypotheses": 1}, "sift": {"max_num_features": 1024}}
+    merged = merge_conf(base, overrides)
+    assert merged["vp"] == {"line_hypotheses": 1, "hypothesis_min_tilt_deg": 50.0}
+    assert merged["sift"] == {"max_num_features": 1024}
+    assert merged["dedup"] == base["dedup"] and merged["rectify"] == base["rectify"]
+    assert base == before and overrides["vp"] == {"line_hypotheses": 1}
+    assert merge_conf(base, None) == base
+    conf = ExtractConf.from_dict(merged)
+    assert conf.vp.line_hypotheses == 1 and conf.dedup.extra_frac == 0.5
 
 
 def test_disparity_shift_is_one_checked_option():

@@ -9,6 +9,7 @@ from rectified_colmap.features import (
     count_detections,
     detect_sift,
     keypoints_in_mask,
+    patch_first_octave,
     similarity_frames,
     split_budget,
 )
@@ -163,6 +164,24 @@ def test_coarse_first_pays_from_pixels_per_feature_after_downscaling():
     assert not coarse_first_pays((8000, 12000), 13700, conf)
     conf.coarse_first = False
     assert not coarse_first_pays((2048, 3072), 8192, conf)
+
+
+def test_patch_first_octave_from_pixels_per_feature_after_downscaling():
+    conf = SiftConf(patch_octave0_pixels_per_feature=150.0, max_image_size=3200)
+    assert patch_first_octave((1024, 1536), 8192, conf) == 0  # 192 px / feature
+    assert patch_first_octave((360, 480), 8192, conf) == -1  # 21 px / feature
+    assert patch_first_octave((780, 1063), 8192, conf) == -1  # 101 px / feature
+    assert patch_first_octave((360, 480), 1024, conf) == 0  # 169 px / feature
+    # 12000 x 8000 is seen by SIFT at 3200 x 2133: 150 px / feature up to 45500 features
+    assert patch_first_octave((8000, 12000), 45500, conf) == 0
+    assert patch_first_octave((8000, 12000), 45600, conf) == -1
+    # never below the configured octave, never upsampling where the rule says 0
+    assert patch_first_octave((1024, 1536), 8192, SiftConf(patch_first_octave=1)) == 1
+    conf.patch_first_octave = 1
+    assert patch_first_octave((360, 480), 8192, conf) == 1
+    assert (
+        patch_first_octave((1024, 1536), 8192, SiftConf(patch_octave0_pixels_per_feature=1e9)) == -1
+    )
 
 
 def test_plain_path_uses_coarse_first_only_where_it_pays():

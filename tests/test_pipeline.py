@@ -135,6 +135,31 @@ def test_keep_plain_shares_the_budget_on_planes(texture):
     assert (g.patch >= 0).sum() > rect and (g.patch < 0).sum() < plain
 
 
+def test_patches_start_at_octave_0_from_the_pixels_per_feature_threshold(texture):
+    """480x360 with 4000 features: 43 pixels per feature. A threshold at or below that
+    gives exactly the features of patch_first_octave = 0; above it, the upsampled octave."""
+    R0, t0 = look_at([0.5, -5, 3.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R0, t0, SIZE)
+
+    def patch_features(**sift):
+        conf = ExtractConf()
+        conf.sift.max_num_features = 4000
+        conf.sift.coarse_first = False
+        for key, value in sift.items():
+            setattr(conf.sift, key, value)
+        f = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+        return f.subset(f.patch >= 0)
+
+    at_threshold = patch_features(patch_octave0_pixels_per_feature=43.0)
+    octave0 = patch_features(patch_first_octave=0)
+    upsampled = patch_features(patch_octave0_pixels_per_feature=44.0)
+    assert len(at_threshold) > 100
+    np.testing.assert_array_equal(at_threshold.keypoints, octave0.keypoints)
+    np.testing.assert_array_equal(at_threshold.descriptors, octave0.descriptors)
+    # the upsampled octave finds finer points (the smallest scales, original pixels)
+    assert np.quantile(upsampled.scales, 0.1) < 0.8 * np.quantile(octave0.scales, 0.1)
+
+
 def test_patch_evidence_viewing_angle_and_texture():
     h, w = 36, 48  # work grid of the 480x360 camera (10 px cells)
     mask = np.zeros((h, w), bool)
