@@ -119,14 +119,15 @@ class SiftConf:
     max_image_size: int = 3200
     """Images larger than this are downscaled for SIFT (COLMAP's default)."""
     patch_first_octave: int = -1
-    """first_octave inside the rectified patches of images with fewer than
-    ``patch_octave0_pixels_per_feature`` pixels per budgeted feature (small images); with
-    -1, ``coarse_first`` still skips the upsampled octave in large patches."""
+    """first_octave inside rectified patches, except in the band below; with -1,
+    ``coarse_first`` still skips the upsampled octave in patches whose coarser octaves fill
+    their budget."""
     patch_octave0_pixels_per_feature: float = float("inf")
-    """From this many pixels per budgeted feature up (the image after ``max_image_size``,
-    ``max_num_features``), patches start at octave 0: they are already enlarged so that no
-    pixel shrinks, and the upsampled octave costs ~3/4 of their SIFT time
-    (features.patch_first_octave; inf: always ``patch_first_octave``)."""
+    """Images with at least this many pixels per budgeted feature (after
+    ``max_image_size``), but fewer than ``coarse_first_pixels_per_feature``, start their
+    patches at octave 0: the patches are already enlarged so that no pixel shrinks, and
+    there the upsampled octave costs ~3/4 of their SIFT time (features.patch_first_octave;
+    inf: never)."""
     coarse_first: bool = True
     """Where an image has at least ``coarse_first_pixels_per_feature`` pixels per budgeted
     feature (after ``max_image_size``), its coarser octaves fill the budget and COLMAP would

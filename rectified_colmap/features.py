@@ -275,10 +275,13 @@ def patch_first_octave(
     shape: tuple[int, int], max_num_features: int, conf: SiftConf = SiftConf()
 ) -> int:
     """first_octave of SIFT in the rectified patches of an image of ``shape`` (h, w) with
-    this budget: 0 from ``conf.patch_octave0_pixels_per_feature`` pixels per feature up
-    (after SIFT's downscaling to ``conf.max_image_size``), else ``conf.patch_first_octave``."""
+    this budget: 0 from ``conf.patch_octave0_pixels_per_feature`` pixels per feature (after
+    SIFT's downscaling to ``conf.max_image_size``) up to where ``coarse_first`` pays (there
+    it already skips the upsampled octave wherever a patch's coarser octaves fill its
+    budget), else ``conf.patch_first_octave``."""
     w, h = sift_input_size(shape[1], shape[0], conf)
-    if w * h >= conf.patch_octave0_pixels_per_feature * max(1, max_num_features):
+    n = max(1, max_num_features)
+    if w * h >= conf.patch_octave0_pixels_per_feature * n and not coarse_first_pays(shape, n, conf):
         return max(0, conf.patch_first_octave)
     return conf.patch_first_octave
 

@@ -167,15 +167,27 @@ def test_coarse_first_pays_from_pixels_per_feature_after_downscaling():
 
 
 def test_patch_first_octave_from_pixels_per_feature_after_downscaling():
-    conf = SiftConf(patch_octave0_pixels_per_feature=150.0, max_image_size=3200)
+    conf = SiftConf(
+        patch_octave0_pixels_per_feature=150.0,
+        coarse_first_pixels_per_feature=500.0,
+        max_image_size=3200,
+    )
     assert patch_first_octave((1024, 1536), 8192, conf) == 0  # 192 px / feature
     assert patch_first_octave((360, 480), 8192, conf) == -1  # 21 px / feature
     assert patch_first_octave((780, 1063), 8192, conf) == -1  # 101 px / feature
     assert patch_first_octave((360, 480), 1024, conf) == 0  # 169 px / feature
-    # 12000 x 8000 is seen by SIFT at 3200 x 2133: 150 px / feature up to 45500 features
+    # from 500 px / feature coarse-first decides in each patch (first_octave stays -1)
+    assert patch_first_octave((1024, 1536), 3146, conf) == 0  # 499.99 px / feature
+    assert patch_first_octave((1024, 1536), 3145, conf) == -1  # 500.1 px / feature
+    assert patch_first_octave((1024, 1536), 1024, conf) == -1
+    # 12000 x 8000 is seen by SIFT at 3200 x 2133: 150-500 px / feature at 13653-45502
     assert patch_first_octave((8000, 12000), 45500, conf) == 0
     assert patch_first_octave((8000, 12000), 45600, conf) == -1
-    # never below the configured octave, never upsampling where the rule says 0
+    assert patch_first_octave((8000, 12000), 13600, conf) == -1
+    assert patch_first_octave((8000, 12000), 13700, conf) == 0
+    conf.coarse_first = False  # no coarse-first: octave 0 from the threshold up
+    assert patch_first_octave((1024, 1536), 1024, conf) == 0
+    # never below the configured octave; inf: always the configured octave
     assert patch_first_octave((1024, 1536), 8192, SiftConf(patch_first_octave=1)) == 1
     conf.patch_first_octave = 1
     assert patch_first_octave((360, 480), 8192, conf) == 1
