@@ -84,26 +84,33 @@ def similarity_frames(scales: np.ndarray, orientations: np.ndarray) -> np.ndarra
     return scales[:, None, None] * np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
 
 
-# Live pycolmap SIFT extractors, least recently used first. Each one keeps VLFeat's scale
-# space for the last image it saw (about 18 float32 images of the first octave: 288 bytes per
-# pixel at first_octave = -1, ~450 MB for 1536x1024, ~2 GB for 3200x2133) until it is
-# destroyed or sees an image of another size. The budget (max_num_features) is fixed in an
-# extractor's options, so a cache per budget held one such scale space per distinct budget;
-# at most MAX_LIVE_EXTRACTORS now stay alive, and an evicted one is destroyed BEFORE the next
-# is created, so the memory of SIFT never exceeds that of one (the largest) image.
-MAX_LIVE_EXTRACTORS = 1
-_EXTRACTORS: OrderedDict[tuple, object] = OrderedDict()
+# Live pycolmap SIFT extractors per slot, least recently used first. Each one keeps VLFeat's
+# scale space for the last image it saw (about 18 float32 images of the first octave: 288
+# bytes per pixel at first_octave = -1, ~450 MB for 1536x1024, ~2 GB for 3200x2133) and
+# reuses it for the next image of that size; a new scale space costs its page faults
+# (~0.25-0.5 CPU s at 1536x1024). The budget (max_num_features) is fixed in an extractor's
+# options, so a cache per budget held one scale space per distinct budget. Now each slot
+# keeps at most MAX_LIVE_EXTRACTORS[slot], and an evicted one is destroyed BEFORE the next is
+# created. Slot "image" (whole images: one budget, and the coarse and fine calls of
+# coarse-first) stays warm from one same-size photo to the next, as in COLMAP's extractor;
+# slot "patch" (rectified patches, a new size and budget each) holds one.
+MAX_LIVE_EXTRACTORS = {"image": 2, "patch": 1}
+_EXTRACTORS: dict[str, OrderedDict[tuple, object]] = {
+    slot: OrderedDict() for slot in MAX_LIVE_EXTRACTORS
+}
 _DEFAULT_NUM_OCTAVES = pycolmap.SiftExtractionOptions().num_octaves
 
 
 def live_extractors() -> int:
-    """Number of pycolmap SIFT extractors alive in this process (at most MAX_LIVE_EXTRACTORS)."""
-    return len(_EXTRACTORS)
+    """Number of pycolmap SIFT extractors alive in this process (at most the sum of
+    MAX_LIVE_EXTRACTORS)."""
+    return sum(len(cache) for cache in _EXTRACTORS.values())
 
 
 def release_extractors() -> None:
     """Destroy every cached SIFT extractor (and the scale-space memory it holds)."""
-    _EXTRACTORS.clear()
+    for cache in _EXTRACTORS.values():
+        cache.clear()
 
 
 def retain_freed_memory() -> bool:
@@ -134,7 +141,9 @@ def _extractor(
     max_num_features: int,
     first_octave: int,
     num_octaves: int = _DEFAULT_NUM_OCTAVES,
+    slot: str = "image",
 ):
+    cache = _EXTRACTORS[slot]
     key = (
         conf.peak_threshold,
         conf.edge_threshold,
@@ -144,10 +153,10 @@ def _extractor(
         int(first_octave),
         int(num_octaves),
     )
-    ex = _EXTRACTORS.pop(key, None)
+    ex = cache.pop(key, None)
     if ex is None:
-        while len(_EXTRACTORS) >= max(1, MAX_LIVE_EXTRACTORS):
-            _EXTRACTORS.popitem(last=False)  # destroyed here, before the new one allocates
+        while len(cache) >= max(1, MAX_LIVE_EXTRACTORS[slot]):
+            cache.popitem(last=False)  # destroyed here, before the new one allocates
         opts = pycolmap.FeatureExtractionOptions()
         opts.num_threads = 1
         sift = opts.sift
@@ -159,7 +168,7 @@ def _extractor(
         sift.max_num_orientations = conf.max_num_orientations
         sift.upright = conf.upright
         ex = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
-    _EXTRACTORS[key] = ex  # most recently used last
+    cache[key] = ex  # most recently used last
     return ex
 
 
@@ -169,11 +178,12 @@ def _run_sift(
     n: int,
     first_octave: int,
     num_octaves: int = _DEFAULT_NUM_OCTAVES,
+    slot: str = "image",
 ) -> tuple[np.ndarray, np.ndarray]:
     """One pycolmap SIFT call on a contiguous (h, w) uint8 image -> ((N, 4) float64
     [x, y, scale, orientation] in COLMAP convention, (N, 128) uint8 descriptors), in COLMAP's
     order: DoG level by DoG level, finest first."""
-    ex = _extractor(conf, n, first_octave, num_octaves)
+    ex = _extractor(conf, n, first_octave, num_octaves, slot)
     kps, desc = ex.extract_from_uint8_array(image)
     if len(kps) == 0:
         return np.zeros((0, 4)), np.zeros((0, 128), np.uint8)
@@ -191,7 +201,7 @@ def count_detections(m: np.ndarray) -> int:
 
 
 def _sift_coarse_first(
-    image: np.ndarray, conf: SiftConf, n: int, first_octave: int
+    image: np.ndarray, conf: SiftConf, n: int, first_octave: int, slot: str = "image"
 ) -> tuple[np.ndarray, np.ndarray]:
     """About the output of COLMAP SIFT with budget n and ``first_octave``, skipping the first
     octave (4x the pixels of the next: ~3/4 of the cost) when the budget does not reach it.
@@ -208,12 +218,12 @@ def _sift_coarse_first(
     coincide within 0.5 px and 5% in scale)."""
     num_octaves = _DEFAULT_NUM_OCTAVES
     if num_octaves < 2:
-        return _run_sift(image, conf, n, first_octave, num_octaves)
-    coarse = _run_sift(image, conf, n, first_octave + 1, num_octaves - 1)
+        return _run_sift(image, conf, n, first_octave, num_octaves, slot)
+    coarse = _run_sift(image, conf, n, first_octave + 1, num_octaves - 1, slot)
     found = count_detections(coarse[0])
     if found > n:
         return coarse
-    fine = _run_sift(image, conf, max(1, n - found), first_octave, 1)
+    fine = _run_sift(image, conf, max(1, n - found), first_octave, 1, slot)
     return np.concatenate([fine[0], coarse[0]]), np.concatenate([fine[1], coarse[1]])
 
 
@@ -223,6 +233,7 @@ def detect_sift(
     max_num_features: int | None = None,
     first_octave: int | None = None,
     coarse_first: bool = False,
+    slot: str = "image",
 ) -> Features:
     """COLMAP SIFT on a grayscale uint8 image (h, w); keypoints in that image's frame.
 
@@ -233,6 +244,8 @@ def detect_sift(
     when the budget reaches it (see ``_sift_coarse_first``): the same points as one pycolmap
     call up to small differences, at ~1/4 of the cost when the budget is filled by the
     coarser octaves. False (default): exactly one pycolmap call with these options.
+    slot: the extractor cache to use (``MAX_LIVE_EXTRACTORS``): "image" for whole images,
+    "patch" for rectified patches, so that patches do not evict the whole image's extractor.
     """
     if image.ndim != 2 or image.dtype != np.uint8:
         raise ValueError(f"SIFT needs a (h, w) uint8 image, got {image.shape} {image.dtype}")
@@ -248,9 +261,9 @@ def detect_sift(
     image = np.ascontiguousarray(image)
     fo = conf.first_octave if first_octave is None else first_octave
     if coarse_first and fo < 0:
-        m, desc = _sift_coarse_first(image, conf, n, fo)
+        m, desc = _sift_coarse_first(image, conf, n, fo, slot)
     else:
-        m, desc = _run_sift(image, conf, n, fo)
+        m, desc = _run_sift(image, conf, n, fo, slot=slot)
     if len(m) == 0:
         return Features.empty()
     xy = m[:, :2] * [sx, sy]  # COLMAP convention: rescaling is a plain multiplication
@@ -385,6 +398,7 @@ def rectified_features(
         budget,
         first_octave,
         coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
+        slot="patch",
     )
     if len(feats) == 0:
         return feats

@@ -39,7 +39,11 @@ def test_live_extractors_stay_bounded():
         detect_sift(img, SiftConf(), n)
         detect_sift(img, SiftConf(), n, first_octave=0)
         detect_sift(img, SiftConf(), n, coarse_first=True)
-        assert 1 <= live_extractors() <= features.MAX_LIVE_EXTRACTORS
+        detect_sift(img, SiftConf(), n, slot="patch")
+        detect_sift(img, SiftConf(), n + 1, coarse_first=True, slot="patch")
+        for slot, cache in features._EXTRACTORS.items():
+            assert 1 <= len(cache) <= features.MAX_LIVE_EXTRACTORS[slot]
+    assert live_extractors() <= sum(features.MAX_LIVE_EXTRACTORS.values())
     release_extractors()
     assert live_extractors() == 0
 
@@ -47,9 +51,25 @@ def test_live_extractors_stay_bounded():
 def test_a_repeated_budget_reuses_its_extractor():
     img = textured_image(64, 96, 2)
     detect_sift(img, SiftConf(), 300)
-    first = next(iter(features._EXTRACTORS.values()))
+    first = next(iter(features._EXTRACTORS["image"].values()))
     detect_sift(img, SiftConf(), 300)
-    assert next(iter(features._EXTRACTORS.values())) is first
+    assert next(iter(features._EXTRACTORS["image"].values())) is first
+
+
+def test_patches_do_not_evict_the_whole_image_extractor():
+    """The whole image's extractor (and its scale space) survives the patches between two
+    same-size images, as COLMAP's extractor does on a folder of photos; patches share one."""
+    release_extractors()
+    img, patch = textured_image(64, 96, 3), textured_image(48, 40, 4)
+    detect_sift(img, SiftConf(), 300)
+    (first,) = features._EXTRACTORS["image"].values()
+    for n in (50, 70, 90):
+        detect_sift(patch, SiftConf(), n, slot="patch")
+        assert len(features._EXTRACTORS["patch"]) == 1
+    detect_sift(img, SiftConf(), 300)
+    (again,) = features._EXTRACTORS["image"].values()
+    assert again is first
+    release_extractors()
 
 
 def test_memory_does_not_grow_with_budgets_and_images():
