@@ -16,10 +16,14 @@ Everything a user waits for is counted: start-up and imports, decoding, camera s
 network, SIFT, writing. Columns per image: CPU seconds of the process and its children
 (``os.wait4``; on a shared machine CPU seconds leave out the time waiting for a core, wall
 seconds do not), wall seconds, the process's peak resident memory, keypoints (from the
-database). ``ratio`` divides by the ``pycolmap`` row of the same run. ``--num_workers 1 2``
-runs ``rectified`` once per worker count (``rectified xN`` rows): ``peak MB`` is then the
-largest single process (``ru_maxrss``), ``tree MB`` the peak of the summed resident memory
-of the process and its children (sampled from /proc every 0.1 s).
+database). ``ratio`` divides by the ``pycolmap`` row of the same run. Each method also runs
+on the first image alone: ``start-up s`` (CPU seconds of that run less one image's) and
+``CPU s / image after`` ((CPU of all - CPU of the first alone) / (N - 1)) split off what a
+long run amortises; ``ratio after`` compares the latter (the steady state of a folder of
+hundreds of photos). ``--num_workers 1 2`` runs ``rectified`` once per worker count
+(``rectified xN`` rows): ``peak MB`` is then the largest single process (``ru_maxrss``),
+``tree MB`` the peak of the summed resident memory of the process and its children
+(sampled from /proc every 0.1 s).
 
     python scripts/bench_cli.py --image_path ../shared/data/strecha-dev/fountain-P11/images \\
         --max_images 6 --camera_params 1379.74,1382.08,760.095,503.155
@@ -232,18 +236,31 @@ def main(argv=None):
             print("colmap executable not found: skipping that row", file=sys.stderr)
             args.methods.remove("colmap")
 
+        first = tmp / "first.txt"
+        first.write_text(names[0] + "\n")
+        alone = {  # the same command on the first image only
+            "pycolmap": lambda c: c[:-1] + [names[0]],
+            "colmap": lambda c: c + ["--image_list_path", str(first)],
+            "rectified": lambda c: c + ["--image_list", str(first)],
+        }
         runs = []
         for method in args.methods:
             if method == "rectified" and args.num_workers:
                 for w in args.num_workers:
-                    runs.append((f"rectified x{w}", cmds[method] + ["--num_workers", str(w)]))
+                    command = cmds[method] + ["--num_workers", str(w)]
+                    runs.append((f"rectified x{w}", command, alone[method](command)))
             else:
-                runs.append((method, cmds[method]))
+                runs.append((method, cmds[method], alone[method](cmds[method])))
         rows = {}
-        for i, (name, command) in enumerate(runs):
-            db = tmp / f"run{i}.db"
+        for i, (name, command, command_first) in enumerate(runs):
+            db, db_first = tmp / f"run{i}.db", tmp / f"run{i}_first.db"
             cmd = [db.as_posix() if c is None else c for c in command]
             rows[name] = run_measured(cmd, env) | {"kp": keypoints_per_image(db)}
+            if len(names) > 1:
+                cmd = [db_first.as_posix() if c is None else c for c in command_first]
+                one = run_measured(cmd, env)["cpu"]
+                rows[name]["after"] = (rows[name]["cpu"] - one) / (len(names) - 1)
+                rows[name]["startup"] = one - rows[name]["after"]
             print(f"{name}: {rows[name]['wall']:.1f} s wall", file=sys.stderr, flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -253,18 +270,24 @@ def main(argv=None):
         load = f.read().split()[0]
     print(f"\n{what}, {size[0]}x{size[1]}, budget {n}; load average at end {load}\n")
     print(
-        "| method | CPU s / image | wall s / image | CPU ratio | wall ratio | peak MB "
-        "| tree MB | keypoints / image |"
+        "| method | CPU s / image | wall s / image | CPU ratio | wall ratio | start-up s "
+        "| CPU s / image after | ratio after | peak MB | tree MB | keypoints / image |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     base = rows.get("pycolmap")
     k = len(names)
     for method, r in rows.items():
         cpu_ratio = f"{r['cpu'] / base['cpu']:.2f}x" if base else "-"
         wall_ratio = f"{r['wall'] / base['wall']:.2f}x" if base else "-"
+        after, startup, after_ratio = "-", "-", "-"
+        if "after" in r:
+            after, startup = f"{r['after']:.2f}", f"{r['startup']:.2f}"
+            if base:
+                after_ratio = f"{r['after'] / base['after']:.2f}x"
         print(
             f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} "
-            f"| {wall_ratio} | {r['peak_MB']:.0f} | {r['tree_MB']:.0f} | {r['kp']:.0f} |"
+            f"| {wall_ratio} | {startup} | {after} | {after_ratio} | {r['peak_MB']:.0f} "
+            f"| {r['tree_MB']:.0f} | {r['kp']:.0f} |"
         )
 
 
