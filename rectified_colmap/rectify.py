@@ -181,6 +181,25 @@ def _rectified_mask(
     return out.reshape(h, w)
 
 
+@dataclass
+class _PatchView:
+    """The scale-independent part of plan_rectification for one patch."""
+
+    normal: np.ndarray
+    R: np.ndarray
+    mask: np.ndarray
+    cos_max: float
+    f: float
+    """Virtual focal length at which nothing shrinks (before the caps)."""
+    lo: np.ndarray
+    hi: np.ndarray
+    """Extent of the patch in virtual normalised coordinates, half a cell of margin."""
+    content: float
+    """Rectified area of the patch at f = 1."""
+    orig_area: float
+    """Area of the patch's cells in original pixels."""
+
+
 def plan_rectification(
     camera: pycolmap.Camera,
     patch: Patch,
@@ -197,6 +216,15 @@ def plan_rectification(
     conf.max_patch_side and by conf.max_patch_area_factor x the patch's area in original
     pixels (the rectified area of the patch itself, not of its bounding box), scaling f down.
     """
+    view = _patch_view(camera, patch, conf)
+    if view is None:
+        return None
+    return _finish_rectification(camera, view, patch_index, conf, scale)
+
+
+def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _PatchView | None:
+    """Rotation, focal length, extent and areas of the patch's cells within the viewing
+    angle (plan_rectification without the scale); None when no cell is usable."""
     n = np.asarray(patch.normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
     mask = np.asarray(patch.mask, bool)
@@ -226,14 +254,27 @@ def plan_rectification(
     smin = _min_singular_values(J)
     if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:
         return None
-    f = 1.0 / np.nanmedian(smin)
     # Margin of half a work cell around the cell centres, in virtual normalised units.
     half = np.nanmax(0.5 * np.abs(J) @ np.array([sx, sy]), axis=0)
-    lo = u.min(0) - half
-    hi = u.max(0) + half
     det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
-    content = np.nanmean(det) * len(xy) * sx * sy  # rectified patch area at f = 1
-    orig_area = len(xy) * sx * sy
+    return _PatchView(
+        normal=n,
+        R=R,
+        mask=mask,
+        cos_max=cos_max,
+        f=1.0 / np.nanmedian(smin),
+        lo=u.min(0) - half,
+        hi=u.max(0) + half,
+        content=np.nanmean(det) * len(xy) * sx * sy,
+        orig_area=len(xy) * sx * sy,
+    )
+
+
+def _finish_rectification(
+    camera: pycolmap.Camera, view: _PatchView, patch_index: int, conf: RectifyConf, scale: float
+) -> Rectification | None:
+    """plan_rectification from a patch's view: caps, ``scale``, size, K and mask."""
+    f, lo, hi = view.f, view.lo, view.hi
 
     def size_for(f):
         return np.ceil((hi - lo) * f + 2 * conf.border).astype(np.int64)
@@ -242,9 +283,9 @@ def plan_rectification(
     extra_scale, scale = min(float(scale), 1.0), 1.0
     if size.max() > conf.max_patch_side:
         scale = min(scale, (conf.max_patch_side - 2 * conf.border) / ((hi - lo).max() * f))
-    area_cap = conf.max_patch_area_factor * orig_area
-    if content * f * f > area_cap:
-        scale = min(scale, np.sqrt(area_cap / (content * f * f)))
+    area_cap = conf.max_patch_area_factor * view.orig_area
+    if view.content * f * f > area_cap:
+        scale = min(scale, np.sqrt(area_cap / (view.content * f * f)))
     scale *= extra_scale
     if scale < 1.0:
         f *= max(scale, 1e-9)
@@ -253,14 +294,14 @@ def plan_rectification(
     cx, cy = conf.border - lo * f
     K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
     rect = Rectification(
-        R=R,
+        R=view.R,
         K=K,
         size=(int(size[0]), int(size[1])),
         mask=np.zeros((int(size[1]), int(size[0])), bool),
-        normal=n,
+        normal=view.normal,
         patch_index=patch_index,
     )
-    rect.mask = _rectified_mask(camera, rect, mask, cos_max)
+    rect.mask = _rectified_mask(camera, rect, view.mask, view.cos_max)
     if not rect.mask.any():
         return None
     return rect
@@ -392,10 +433,12 @@ def rectifications_within_area(
     their summed size exceeds ``conf.max_total_area_factor`` x the image area x the
     patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
     to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
-    patches of their size would get)."""
+    patches of their size would get). Each patch's view is computed once."""
+    views = [(i, _patch_view(camera, patches[i], conf)) for i in indices]
+    views = [(i, v) for i, v in views if v is not None]
 
     def plan(scale):
-        rects = (plan_rectification(camera, patches[i], i, conf, scale) for i in indices)
+        rects = (_finish_rectification(camera, v, i, conf, scale) for i, v in views)
         return [r for r in rects if r is not None]
 
     rects = plan(1.0)
