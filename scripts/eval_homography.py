@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.config import ExtractConf
+from rectified_colmap.config import ExtractConf, merge_conf
 from rectified_colmap.eval.homography import (
     HomographyConf,
     evaluate_homography_pairs,
@@ -81,9 +81,7 @@ def extract_method(
     overrides = json.loads(args.rect_conf) if args.rect_conf else {}
     variant = dict(args.variants.get(method, {}))
     base = variant.pop("_base", "rectsift")  # a variant of rectsift (network) or of oracle
-    for section, values in variant.items():
-        overrides[section] = {**overrides.get(section, {}), **values}
-    conf = ExtractConf.from_dict(overrides)
+    conf = ExtractConf.from_dict(merge_conf(overrides, variant))
     if args.max_num_features:
         conf.sift.max_num_features = args.max_num_features
     if method == "sift":

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rectified_colmap.config import EvalConf, LocalizeConf, SiftConf
+from rectified_colmap.config import EvalConf, LocalizeConf, SiftConf, merge_conf
 from rectified_colmap.eval.localize import accuracy_table, localize_with_model
 from rectified_colmap.eval.pairs import read_pairs_with_gt
 from rectified_colmap.eval.relpose import evaluate_pairs
@@ -78,10 +78,9 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     else:
         depth_model = args.depth_model or DEFAULT_DEPTH_MODEL
         overrides = json.loads(args.rect_conf) if args.rect_conf else {}
-        if method in args.variants:  # a named variant: its overrides on top of --rect_conf
-            for section, values in args.variants[method].items():
-                overrides[section] = {**overrides.get(section, {}), **values}
-        conf = {**overrides, "sift": {**overrides.get("sift", {}), **sift}}
+        # a named variant: its overrides on top of --rect_conf; the budget on top of both
+        overrides = merge_conf(overrides, args.variants.get(method))
+        conf = merge_conf(overrides, {"sift": sift})
         kw = dict(conf=conf, depth_model=depth_model, depth_path=args.depth_path)
     t = time.perf_counter()
     summary = extract(
