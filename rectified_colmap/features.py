@@ -383,14 +383,12 @@ def rectified_features(
     budget: int,
     conf: SiftConf,
     border: int,
-    first_octave: int | None = None,
 ) -> Features:
-    """SIFT inside one rectified patch (``budget`` features, ``first_octave``, by default
-    ``patch_first_octave`` of the whole image ``gray`` with ``conf``), mapped back to the
-    original image; features closer than ``border`` rectified pixels to the border of the
-    warped region are dropped. ``index`` is their source."""
-    if first_octave is None:
-        first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
+    """SIFT inside one rectified patch (``budget`` features, from the octave
+    ``patch_first_octave`` gives the whole image ``gray`` with ``conf``'s budget), mapped
+    back to the original image; features closer than ``border`` rectified pixels to the
+    border of the warped region are dropped. ``index`` is their source."""
+    first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
     patch_img = warp_to_rectified(gray, camera, rect)
     feats = detect_sift(
         patch_img,

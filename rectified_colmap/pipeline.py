@@ -28,7 +28,6 @@ from .features import (
     Features,
     coarse_first_pays,
     detect_sift,
-    patch_first_octave,
     plain_features,
     rectification_budgets,
     rectified_features,
@@ -206,20 +205,12 @@ def extract_image(
         if plain_budget > 0 and plain_region.any():
             plain = plain_features(gray, plain_region, plain_budget, conf.sift)
     parts = []
-    octave = patch_first_octave(gray.shape, total, conf.sift)
     for i, rect in enumerate(rects):
         with timed(t, "warps+sift_patches"):
             budget = int(budgets[i + 1])
             parts.append(
                 rectified_features(
-                    gray,
-                    camera,
-                    rect,
-                    rect.patch_index,
-                    budget,
-                    conf.sift,
-                    conf.rectify.border,
-                    octave,
+                    gray, camera, rect, rect.patch_index, budget, conf.sift, conf.rectify.border
                 )
             )
     if not conf.dedup.enabled:
