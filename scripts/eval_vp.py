@@ -233,6 +233,7 @@ def confs(
 ) -> dict[str, ExtractConf]:
     base = ExtractConf.from_dict(overrides)
     base.sift.max_num_features = max_num_features
+    base.vp.enabled = False  # rows without "+ VP" run without it (the default has it on)
     vp = ExtractConf.from_dict(base.to_dict())
     vp.vp.enabled = True
     free = ExtractConf.from_dict(base.to_dict())
