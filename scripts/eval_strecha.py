@@ -47,17 +47,24 @@ logger = logging.getLogger("eval_strecha")
 METHODS = ("sift", "rectsift")
 
 
+def scene_cameras(scene: Path) -> dict[tuple[str, str], list[str]]:
+    """(model, 'p1,p2,...') -> the names ("images/...") of the images of the scene's
+    model that have this camera (Strecha: one camera; photo collections: one per image)."""
+    rec = pycolmap.Reconstruction(str(scene / "sparse"))
+    out: dict[tuple[str, str], list[str]] = {}
+    for im in sorted(rec.images.values(), key=lambda im: im.name):
+        c = rec.cameras[im.camera_id]
+        key = (c.model.name, ",".join(f"{p:.10g}" for p in np.round(c.params, 6)))
+        out.setdefault(key, []).append(f"images/{im.name}")
+    return out
+
+
 def scene_camera(scene: Path) -> tuple[str, str]:
     """(model, 'p1,p2,...') of the scene's single camera model (all images must share it)."""
-    rec = pycolmap.Reconstruction(str(scene / "sparse"))
-    cams = {
-        (c.model.name, tuple(np.round(c.params, 6)), c.width, c.height)
-        for c in rec.cameras.values()
-    }
+    cams = scene_cameras(scene)
     if len(cams) != 1:
         raise SystemExit(f"{scene}/sparse: {len(cams)} different cameras; expected one")
-    model, params, _, _ = cams.pop()
-    return model, ",".join(f"{p:.10g}" for p in params)
+    return next(iter(cams))
 
 
 def extract_method(scene: Path, method: str, out: Path, args) -> Path:
@@ -65,8 +72,6 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     from rectified_colmap.extract import extract
 
     h5 = out / "features" / scene.name / f"{method}.h5"
-    names = [f"images/{p.name}" for p in sorted((scene / "images").glob("*.jpg"))]
-    model, params = scene_camera(scene)
     sift = {"max_num_features": args.max_num_features} if args.max_num_features else {}
     plain_budget = method.startswith("sift@")  # --plain_budget N: method sift@N
     if plain_budget:
@@ -83,25 +88,23 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
         conf = merge_conf(overrides, {"sift": sift})
         kw = dict(conf=conf, depth_model=depth_model, depth_path=args.depth_path)
     t = time.perf_counter()
-    summary = extract(
-        scene,
-        hloc_features=h5,
-        image_list=names,
-        camera_model=model,
-        camera_params=params,
-        num_workers=args.num_workers,
-        progress=not args.no_progress,
-        **kw,
-    )
-    if not summary.ok:
-        raise SystemExit(f"{scene.name}/{method}: extraction failed\n{summary.report()}")
-    logger.info(
-        "%s/%s: %s (%.1f s)",
-        scene.name,
-        method,
-        summary.report().splitlines()[1],
-        time.perf_counter() - t,
-    )
+    groups = scene_cameras(scene)
+    for k, ((model, params), names) in enumerate(groups.items(), 1):  # one call per camera
+        summary = extract(
+            scene,
+            hloc_features=h5,
+            image_list=names,
+            camera_model=model,
+            camera_params=params,
+            num_workers=args.num_workers,
+            progress=not args.no_progress,
+            **kw,
+        )
+        if not summary.ok:
+            raise SystemExit(f"{scene.name}/{method}: extraction failed\n{summary.report()}")
+        where = f" (camera {k} of {len(groups)})" if len(groups) > 1 else ""
+        logger.info("%s/%s%s: %s", scene.name, method, where, summary.report().splitlines()[1])
+    logger.info("%s/%s: %.1f s", scene.name, method, time.perf_counter() - t)
     return h5
 
 

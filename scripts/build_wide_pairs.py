@@ -1,0 +1,117 @@
+#!/usr/bin/env python
+"""Wide-baseline real pairs with poses from a reconstruction (as MegaDepth / IMC build theirs).
+
+For each set of ``--data`` with a COLMAP model in ``colmap_sparse/`` (the multi-view sets of
+../shared/data/real-pool), writes a scene that ``scripts/eval_strecha.py`` evaluates as it
+does Strecha's:
+
+    OUT/<set>/images/            undistorted images (pycolmap.undistort_images: pinhole)
+    OUT/<set>/sparse/            the undistorted model (PINHOLE cameras, same poses)
+    OUT/<set>/pairs_with_gt.txt  pairs with >= --min_covisible common 3D points and a
+                                 viewpoint change >= --min_viewpoint_deg (SuperGlue format)
+    OUT/<set>/pairs.csv          per pair: common points, viewpoint change, rotation
+
+The viewpoint change of a pair is the median angle between the two viewing rays of its
+common points (rectified_colmap.eval.wide_pairs). The poses come from an SfM model built
+with SIFT, not from an independent ground truth: pairs that no image links to the rest are
+missing, and the poses are as good as the model (sub-pixel reprojection error).
+
+    python scripts/build_wide_pairs.py --data ../shared/data/real-pool --output OUT \
+        --sets sacre-coeur british-museum nle-tower sceaux-castle
+    python scripts/eval_strecha.py --data OUT --output_dir EVAL --methods sift rectsift
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from rectified_colmap.eval.pairs import pairs_from_model, write_pairs_with_gt
+from rectified_colmap.eval.wide_pairs import wide_pairs
+
+logger = logging.getLogger("build_wide_pairs")
+
+# held out from the embedded network's training (rectified_colmap.training.real)
+DEFAULT_SETS = ("sacre-coeur", "british-museum", "nle-tower")
+
+
+def build_scene(src: Path, dst: Path, args) -> list:
+    """Undistort ``src`` (images/ + colmap_sparse/) into ``dst`` and write its pairs."""
+    if not (dst / "sparse").is_dir():  # built into a temporary folder, renamed when complete
+        tmp = dst.with_name(dst.name + ".partial")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.parent.mkdir(parents=True, exist_ok=True)
+        pycolmap.undistort_images(
+            str(tmp), str(src / "colmap_sparse"), str(src / "images"), jpeg_quality=95
+        )
+        shutil.rmtree(tmp / "stereo", ignore_errors=True)  # for dense MVS, not needed here
+        for script in tmp.glob("run-colmap-*.sh"):
+            script.unlink()
+        tmp.rename(dst)
+    rec = pycolmap.Reconstruction(str(dst / "sparse"))
+    pairs = wide_pairs(
+        rec,
+        min_covisible=args.min_covisible,
+        min_viewpoint_deg=args.min_viewpoint_deg,
+        max_viewpoint_deg=args.max_viewpoint_deg,
+    )
+    keep = {(p.name0, p.name1) for p in pairs}
+    gt = [
+        q
+        for q in pairs_from_model(rec, prefix="images/")
+        if (q.name0.removeprefix("images/"), q.name1.removeprefix("images/")) in keep
+    ]
+    write_pairs_with_gt(dst / "pairs_with_gt.txt", gt)
+    with open(dst / "pairs.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["name0", "name1", "num_covisible", "viewpoint_deg", "rotation_deg"])
+        for p in pairs:
+            w.writerow(
+                [
+                    f"images/{p.name0}",
+                    f"images/{p.name1}",
+                    p.num_covisible,
+                    f"{p.viewpoint_deg:.2f}",
+                    f"{p.rotation_deg:.2f}",
+                ]
+            )
+    return pairs
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, required=True, help="real-pool folder")
+    p.add_argument("--output", type=Path, required=True)
+    p.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS))
+    p.add_argument("--min_covisible", type=int, default=30)
+    p.add_argument("--min_viewpoint_deg", type=float, default=0.0)
+    p.add_argument("--max_viewpoint_deg", type=float, default=180.0)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
+    edges = [0, 10, 20, 30, 40, 60, 90, 180]
+    rows = []
+    failed = False
+    for name in args.sets:
+        src = args.data / name
+        if not (src / "colmap_sparse").is_dir():
+            logger.error("%s: no colmap_sparse/ (not a multi-view set)", src)
+            failed = True
+            continue
+        pairs = build_scene(src, args.output / name, args)
+        hist = np.histogram([q.viewpoint_deg for q in pairs], edges)[0]
+        rows.append(f"| {name} | {len(pairs)} | " + " | ".join(map(str, hist)) + " |")
+    head = " | ".join(f"{a}-{b}" for a, b in zip(edges[:-1], edges[1:]))
+    print(f"| set | pairs | {head} |\n|---|---|" + "---|" * (len(edges) - 1))
+    print("\n".join(rows))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
