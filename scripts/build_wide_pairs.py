@@ -24,7 +24,6 @@ missing, and the poses are as good as the model (sub-pixel reprojection error).
 from __future__ import annotations
 
 import argparse
-import csv
 import logging
 import shutil
 import sys
@@ -34,7 +33,7 @@ import numpy as np
 import pycolmap
 
 from rectified_colmap.eval.pairs import pairs_from_model, write_pairs_with_gt
-from rectified_colmap.eval.wide_pairs import wide_pairs
+from rectified_colmap.eval.wide_pairs import wide_pairs, write_pairs_csv
 
 logger = logging.getLogger("build_wide_pairs")
 
@@ -69,19 +68,7 @@ def build_scene(src: Path, dst: Path, args) -> list:
         if (q.name0.removeprefix("images/"), q.name1.removeprefix("images/")) in keep
     ]
     write_pairs_with_gt(dst / "pairs_with_gt.txt", gt)
-    with open(dst / "pairs.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["name0", "name1", "num_covisible", "viewpoint_deg", "rotation_deg"])
-        for p in pairs:
-            w.writerow(
-                [
-                    f"images/{p.name0}",
-                    f"images/{p.name1}",
-                    p.num_covisible,
-                    f"{p.viewpoint_deg:.2f}",
-                    f"{p.rotation_deg:.2f}",
-                ]
-            )
+    write_pairs_csv(dst / "pairs.csv", pairs, prefix="images/")
     return pairs
 
 

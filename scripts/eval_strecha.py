@@ -41,6 +41,7 @@ from rectified_colmap.eval.localize import accuracy_table, localize_with_model
 from rectified_colmap.eval.pairs import read_pairs_with_gt
 from rectified_colmap.eval.relpose import evaluate_pairs
 from rectified_colmap.eval.report import paired_markdown, write_outputs
+from rectified_colmap.eval.wide_pairs import read_viewpoints
 
 logger = logging.getLogger("eval_strecha")
 
@@ -180,7 +181,10 @@ def main(argv=None) -> int:
         feats = {m: extract_method(scene, m, out, args) for m in names}
         pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
         recs = evaluate_pairs(pairs, feats, conf, args.num_workers, progress=not args.no_progress)
+        # wide-baseline scenes (scripts/build_wide_pairs.py) know each pair's viewpoint change
+        views = read_viewpoints(scene / "pairs.csv") if (scene / "pairs.csv").is_file() else {}
         for r in recs:
+            r["viewpoint"] = views.get((r["name0"], r["name1"]))
             r["name0"], r["name1"] = f"{scene.name}/{r['name0']}", f"{scene.name}/{r['name1']}"
         records += recs
         if args.localize:

@@ -327,3 +327,55 @@ def test_paired_comparison_counts_discordant_pairs():
     assert "| new | all | 12 | 6 | 0 | **0.031** |" in md
     with pytest.raises(ValueError, match="baseline"):
         report.paired_comparison(recs, "nope")
+
+
+def test_tables_by_viewpoint_change(tmp_path):
+    def rec(method, i, rot, view, success, correct):
+        return {
+            "name0": f"a{i}",
+            "name1": f"b{i}",
+            "method": method,
+            "gt_rot": rot,
+            "viewpoint": view,
+            "category": None,
+            "success": success,
+            "epipolar_success": success,
+            "num_kp0": 10,
+            "num_kp1": 10,
+            "num_matches": correct,
+            "num_inliers": correct,
+            "num_correct": correct,
+            "num_inliers_correct": correct,
+            "R_err": 1.0,
+            "t_err": 1.0,
+            "pose_err": 1.0,
+        }
+
+    # small rotations, but pairs 4-7 see the scene from 45 degrees apart; pair 8 unknown
+    recs = []
+    for i in range(9):
+        view = None if i == 8 else (45.0 if i >= 4 else 5.0)
+        recs.append(rec("base", i, 3.0, view, True, 100))
+        recs.append(rec("new", i, 3.0, view, True, 100 + 10 * (4 <= i < 8)))
+    known = report.with_field(recs, "viewpoint")
+    assert len(known) == 16
+    rows = {r["bin"]: r for r in report.paired_comparison(known, "base", 10.0, "viewpoint")}
+    assert (rows[(40.0, 50.0)]["more"], rows[(40.0, 50.0)]["pairs"]) == (4, 4)
+    assert (rows[(0.0, 10.0)]["more"], rows[(0.0, 10.0)]["fewer"]) == (0, 0)
+    md = report.markdown_table(known, 10.0, by="viewpoint")
+    assert "| viewpoint change (deg) | pairs |" in md and "| 40-50 | 4 |" in md
+    assert "viewpoint change (deg)" in report.paired_markdown(known, "base", 10.0, "viewpoint")
+
+    report.write_outputs(recs, tmp_path, EvalConf(), plot=False)
+    text = (tmp_path / "summary.md").read_text()
+    assert "By viewpoint change (8 pairs with 3D points)" in text
+    back = report.read_csv(tmp_path / "records.csv")
+    assert [r["viewpoint"] for r in back[:2]] == [5.0, 5.0] and back[-1]["viewpoint"] is None
+    # files without the column (older runs) read as unknown viewpoints
+    lines = (tmp_path / "records.csv").read_text().splitlines()
+    col = lines[0].split(",").index("viewpoint")
+    strip = lambda line: ",".join(v for k, v in enumerate(line.split(",")) if k != col)  # noqa: E731
+    (tmp_path / "old.csv").write_text("\n".join(strip(line) for line in lines) + "\n")
+    assert all(r["viewpoint"] is None for r in report.read_csv(tmp_path / "old.csv"))
+    report.write_outputs(report.read_csv(tmp_path / "old.csv"), tmp_path / "o", EvalConf(), False)
+    assert "By viewpoint" not in (tmp_path / "o" / "summary.md").read_text()

@@ -31,6 +31,7 @@ RECORD_FIELDS = [
     "name1",
     "method",
     "gt_rot",
+    "viewpoint",
     "category",
     "num_kp0",
     "num_kp1",
@@ -44,6 +45,17 @@ RECORD_FIELDS = [
     "success",
     "epipolar_success",
 ]
+
+
+BIN_LABELS = {"gt_rot": "GT rotation (deg)", "viewpoint": "viewpoint change (deg)"}
+"""What the per-bin tables can bin by: the record field and its column title. ``viewpoint``
+(optional, None where unknown): the median angle between the two viewing rays of the
+pair's co-visible 3D points (rectified_colmap.eval.wide_pairs)."""
+
+
+def with_field(records: list[dict], by: str) -> list[dict]:
+    """The records whose ``by`` field is known (not None, not missing)."""
+    return [r for r in records if r.get(by) is not None]
 
 
 def methods_of(records: list[dict]) -> list[str]:
@@ -81,14 +93,14 @@ def pose_auc(errors: np.ndarray, thresholds=(5.0, 10.0, 20.0)) -> list[float]:
 
 
 def success_by_bin(
-    records: list[dict], bin_deg: float = 10.0, key: str = "success"
+    records: list[dict], bin_deg: float = 10.0, key: str = "success", by: str = "gt_rot"
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """method -> (success rate per bin (NaN for empty bins), pair count per bin)."""
+    """method -> (success rate per bin of ``by`` (NaN for empty bins), pair count per bin)."""
     edges = bin_edges(bin_deg)
     out = {}
     for m in methods_of(records):
         rs = [r for r in records if r["method"] == m]
-        b = bin_index(np.array([r["gt_rot"] for r in rs]), edges)
+        b = bin_index(np.array([r[by] for r in rs]), edges)
         s = np.array([r[key] for r in rs], float)
         count = np.bincount(b, minlength=len(edges) - 1)
         hits = np.bincount(b, weights=s, minlength=len(edges) - 1)
@@ -97,13 +109,15 @@ def success_by_bin(
     return out
 
 
-def median_by_bin(records: list[dict], bin_deg: float, key: str) -> dict[str, np.ndarray]:
-    """method -> median of ``key`` per GT rotation bin (NaN for empty bins)."""
+def median_by_bin(
+    records: list[dict], bin_deg: float, key: str, by: str = "gt_rot"
+) -> dict[str, np.ndarray]:
+    """method -> median of ``key`` per bin of ``by`` (NaN for empty bins)."""
     edges = bin_edges(bin_deg)
     out = {}
     for m in methods_of(records):
         rs = [r for r in records if r["method"] == m]
-        b = bin_index(np.array([r["gt_rot"] for r in rs]), edges)
+        b = bin_index(np.array([r[by] for r in rs]), edges)
         v = np.array([r[key] for r in rs], float)
         out[m] = np.array(
             [np.median(v[b == k]) if np.any(b == k) else np.nan for k in range(len(edges) - 1)]
@@ -142,12 +156,15 @@ def binomial_two_sided_p(k: int, n: int) -> float:
     return float(min(1.0, 2.0 * tail))
 
 
-def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0) -> list[dict]:
-    """Each other method against ``baseline`` on the pairs both have, per GT rotation bin and
-    overall (``bin`` = None): ``wins``/``losses`` = pairs only the method / only the baseline
-    solves, ``p_success`` (exact McNemar), ``more``/``fewer`` = pairs with more / fewer
-    GT-correct matches than the baseline, ``p_correct`` (sign test, ties dropped) and
-    ``median_ratio`` of GT-correct counts (method / baseline, pairs where the baseline has any).
+def paired_comparison(
+    records: list[dict], baseline: str, bin_deg: float = 10.0, by: str = "gt_rot"
+) -> list[dict]:
+    """Each other method against ``baseline`` on the pairs both have, per bin of ``by`` (GT
+    rotation or viewpoint change, BIN_LABELS) and overall (``bin`` = None):
+    ``wins``/``losses`` = pairs only the method / only the baseline solves, ``p_success``
+    (exact McNemar), ``more``/``fewer`` = pairs with more / fewer GT-correct matches than
+    the baseline, ``p_correct`` (sign test, ties dropped) and ``median_ratio`` of GT-correct
+    counts (method / baseline, pairs where the baseline has any).
     """
     key = lambda r: (r["name0"], r["name1"])  # noqa: E731
     base = {key(r): r for r in records if r["method"] == baseline}
@@ -161,7 +178,7 @@ def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0)
         pairs = [(base[key(r)], r) for r in records if r["method"] == m and key(r) in base]
         if not pairs:
             continue
-        b = bin_index(np.array([p[0]["gt_rot"] for p in pairs]), edges)
+        b = bin_index(np.array([p[0][by] for p in pairs]), edges)
         s0 = np.array([p[0]["success"] for p in pairs], bool)
         s1 = np.array([p[1]["success"] for p in pairs], bool)
         c0 = np.array([p[0]["num_correct"] for p in pairs], float)
@@ -190,11 +207,13 @@ def paired_comparison(records: list[dict], baseline: str, bin_deg: float = 10.0)
     return rows
 
 
-def paired_markdown(records: list[dict], baseline: str, bin_deg: float = 10.0) -> str:
+def paired_markdown(
+    records: list[dict], baseline: str, bin_deg: float = 10.0, by: str = "gt_rot"
+) -> str:
     """:func:`paired_comparison` as a Markdown table (p < 0.05 in bold)."""
     head = [
         "method vs " + baseline,
-        "GT rotation (deg)",
+        BIN_LABELS[by],
         "pairs",
         "solved only by method",
         "solved only by baseline",
@@ -206,7 +225,7 @@ def paired_markdown(records: list[dict], baseline: str, bin_deg: float = 10.0) -
     ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     fmt = lambda p: f"**{p:.3f}**" if p < 0.05 else f"{p:.3f}"  # noqa: E731
-    for r in paired_comparison(records, baseline, bin_deg):
+    for r in paired_comparison(records, baseline, bin_deg, by):
         rng = "all" if r["bin"] is None else f"{r['bin'][0]:g}-{r['bin'][1]:g}"
         lines.append(
             "| "
@@ -239,8 +258,10 @@ def markdown_table(
     auc_thresholds=(5.0, 10.0, 20.0),
     success_deg: float = 5.0,
     min_correct: int | None = None,
+    by: str = "gt_rot",
 ) -> str:
-    """Two Markdown tables: per-method summary, then success (%) per rotation bin."""
+    """Two Markdown tables: per-method summary, then success (%) per bin of ``by`` (GT
+    rotation or viewpoint change, BIN_LABELS)."""
     rows = summary(records, auc_thresholds)
     mc = f" (>= {min_correct} GT-correct)" if min_correct is not None else ""
     head = (
@@ -261,12 +282,12 @@ def markdown_table(
         )
         lines.append("| " + " | ".join(vals) + " |")
     edges = bin_edges(bin_deg)
-    per_bin = success_by_bin(records, bin_deg)
+    per_bin = success_by_bin(records, bin_deg, by=by)
     counts = next(iter(per_bin.values()))[1] if per_bin else np.zeros(len(edges) - 1, int)
     used = [k for k in range(len(edges) - 1) if counts[k] > 0]
-    correct = median_by_bin(records, bin_deg, "num_correct")
+    correct = median_by_bin(records, bin_deg, "num_correct", by)
     head = (
-        ["GT rotation (deg)", "pairs"]
+        [BIN_LABELS[by], "pairs"]
         + [f"{m} success %" for m in per_bin]
         + [f"{m} median GT-correct" for m in per_bin]
     )
@@ -297,6 +318,7 @@ def read_csv(path: Path | str) -> list[dict]:
             r = dict(row)
             for k in ("gt_rot", "R_err", "t_err", "pose_err"):
                 r[k] = float(r[k])
+            r["viewpoint"] = float(r["viewpoint"]) if r.get("viewpoint") else None
             for k in (
                 "num_kp0",
                 "num_kp1",
@@ -378,6 +400,14 @@ def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str =
             + " (same pairs; p: exact two-sided)\n\n"
             + paired_markdown(records, methods[0], conf.bin_deg)
         )
+    known = with_field(records, "viewpoint")
+    if known:  # wide-baseline scenes (scripts/build_wide_pairs.py): by viewpoint change too
+        table += f"\nBy viewpoint change ({len(known) // len(methods)} pairs with 3D points)\n\n"
+        table += markdown_table(
+            known, conf.bin_deg, conf.auc_thresholds, conf.success_deg, by="viewpoint"
+        )
+        if len(methods) > 1:
+            table += "\n" + paired_markdown(known, methods[0], conf.bin_deg, "viewpoint")
     (out / "summary.md").write_text(table)
     (out / "summary.json").write_text(json.dumps(summary(records, conf.auc_thresholds), indent=1))
     if plot:

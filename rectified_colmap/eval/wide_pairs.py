@@ -16,7 +16,9 @@ images only, tracks from ``points3D``.
 
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -113,3 +115,29 @@ def reconstruction_arrays(rec) -> tuple[list[str], np.ndarray, np.ndarray, np.nd
 def wide_pairs(rec, **kw) -> list[WidePair]:
     """select_pairs on a pycolmap.Reconstruction (keyword arguments: its thresholds)."""
     return select_pairs(*reconstruction_arrays(rec), **kw)
+
+
+CSV_FIELDS = ("name0", "name1", "num_covisible", "viewpoint_deg", "rotation_deg")
+
+
+def write_pairs_csv(path: Path | str, pairs: list[WidePair], prefix: str = "") -> None:
+    """One row per pair (CSV_FIELDS); ``prefix`` before the names (e.g. "images/")."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_FIELDS)
+        for p in pairs:
+            w.writerow(
+                [
+                    prefix + p.name0,
+                    prefix + p.name1,
+                    p.num_covisible,
+                    f"{p.viewpoint_deg:.2f}",
+                    f"{p.rotation_deg:.2f}",
+                ]
+            )
+
+
+def read_viewpoints(path: Path | str) -> dict[tuple[str, str], float]:
+    """(name0, name1) -> viewpoint change (degrees) from a file of write_pairs_csv."""
+    with open(path, newline="") as f:
+        return {(r["name0"], r["name1"]): float(r["viewpoint_deg"]) for r in csv.DictReader(f)}
