@@ -200,14 +200,13 @@ def main(argv=None) -> int:
                     image_dir=scene,
                 )
                 loc_rows[f"{scene.name} {m}"] = (acc, len(res))
-    table = write_outputs(
-        records, out, conf, not args.no_plot, f"Strecha ({', '.join(s.name for s in scenes)})"
-    )
+    title = f"{args.data.name} ({', '.join(s.name for s in scenes)})"
+    table = write_outputs(records, out, conf, not args.no_plot, title)
     for n in args.plain_budget:
         table += f"\nPaired with sift@{n} (same pairs; p: exact two-sided)\n\n"
         table += paired_markdown(records, f"sift@{n}", conf.bin_deg)
     text = [
-        "# Strecha results",
+        f"# Relative pose on {args.data.name}",
         "",
         "Command:",
         "",
