@@ -45,7 +45,9 @@ method each, renamed) into one table by rotation bin (the real-photo part of doc
         "network=OUT_net/records.csv:rectsift" "network + VP=OUT_netvp/records.csv:rectsift"
 
 With ``--baseline LABEL`` it adds each other row paired against that one (per rotation bin:
-pairs solved only by either, McNemar p; more / fewer GT-correct, sign-test p).
+pairs solved only by either, McNemar p; more / fewer GT-correct, sign-test p). With
+``--bin_by viewpoint`` the bins are of viewpoint change instead (records of wide scenes,
+scripts/build_wide_pairs.py).
 """
 
 from __future__ import annotations
@@ -437,9 +439,12 @@ def paired_lines(records: list[dict], rows: dict) -> str:
     return "Paired vs plain SIFT:\n\n" + "\n".join(lines) + "\n"
 
 
-def combine(specs: list[str], bin_deg: float = 10.0, baseline: str | None = None) -> str:
+def combine(
+    specs: list[str], bin_deg: float = 10.0, baseline: str | None = None, by: str = "gt_rot"
+) -> str:
     """'LABEL=records.csv:method' ... -> Markdown tables (rectified_colmap.eval.report),
-    with ``baseline`` (a LABEL) also the other rows paired against it."""
+    with ``baseline`` (a LABEL) also the other rows paired against it; bins of ``by``
+    ("gt_rot" or "viewpoint": then only the records that know their viewpoint change)."""
     from rectified_colmap.eval import report as rep
 
     records = []
@@ -454,10 +459,15 @@ def combine(specs: list[str], bin_deg: float = 10.0, baseline: str | None = None
         if not recs:
             raise SystemExit(f"--combine {spec!r}: no records of method {method!r} in {path}")
         records += recs
+    records = rep.with_field(records, by)
+    if not records:
+        raise SystemExit(f"--combine: no records with a known {by!r}")
     c = EvalConf(bin_deg=bin_deg)
-    text = rep.markdown_table(records, c.bin_deg, c.auc_thresholds, c.success_deg, c.min_correct)
+    text = rep.markdown_table(
+        records, c.bin_deg, c.auc_thresholds, c.success_deg, c.min_correct, by=by
+    )
     if baseline is not None:
-        text += "\n" + rep.paired_markdown(records, baseline, c.bin_deg)
+        text += "\n" + rep.paired_markdown(records, baseline, c.bin_deg, by)
     return text
 
 
@@ -567,6 +577,12 @@ def main(argv=None) -> int:
     )
     p.add_argument("--bin_deg", type=float, default=10.0, help="with --combine")
     p.add_argument(
+        "--bin_by",
+        choices=("gt_rot", "viewpoint"),
+        default="gt_rot",
+        help="with --combine: bins of GT rotation or of viewpoint change (wide scenes)",
+    )
+    p.add_argument(
         "--baseline",
         metavar="LABEL",
         help="with --combine: also pair every other row against this one",
@@ -585,8 +601,10 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     if args.timing:
         text = timing(args.timing, args.num_images, args.max_num_features)
+    elif args.combine:
+        text = combine(args.combine, args.bin_deg, args.baseline, args.bin_by)
     else:
-        text = combine(args.combine, args.bin_deg, args.baseline) if args.combine else run(args)
+        text = run(args)
     print(text)
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -26,3 +26,29 @@ def test_rows_without_vp_run_without_it_although_the_default_has_it():
         assert conf.sift.max_num_features == 1024
         assert conf.rectify.max_viewing_angle_deg == 86.0
     assert cfs["VP only"].vp.depth_free and cfs[ev.WHOLE].vp.depth_free_regions == "whole"
+
+
+def test_combine_bins_by_viewpoint_change(tmp_path):
+    import pytest
+
+    from rectified_colmap.eval import report
+
+    ev = load_script()
+    recs = []
+    for i, (rot, view) in enumerate([(5.0, 45.0), (5.0, 45.0), (15.0, None)]):
+        for method, correct in (("sift", 100), ("rectsift", 120)):
+            recs.append(
+                dict(name0=f"a{i}", name1=f"b{i}", method=method, gt_rot=rot, viewpoint=view)
+                | dict(category=None, num_kp0=1, num_kp1=1, num_matches=correct)
+                | dict(num_inliers=correct, num_correct=correct, num_inliers_correct=correct)
+                | dict(R_err=1.0, t_err=1.0, pose_err=1.0, success=True, epipolar_success=True)
+            )
+    report.write_csv(tmp_path / "r.csv", recs)
+    specs = [f"a={tmp_path / 'r.csv'}:sift", f"b={tmp_path / 'r.csv'}:rectsift"]
+    text = ev.combine(specs, 10.0, "a", "viewpoint")
+    assert "| viewpoint change (deg) | pairs |" in text and "| 40-50 | 2 |" in text
+    assert "| b | all | 2 | 0 | 0 | 1.000 | 2 | 0 |" in text  # the unknown pair left out
+    assert "| b | all | 3 |" in ev.combine(specs, 10.0, "a")  # by GT rotation: all three
+    report.write_csv(tmp_path / "old.csv", [dict(r, viewpoint=None) for r in recs])
+    with pytest.raises(SystemExit, match="no records with a known 'viewpoint'"):
+        ev.combine([f"a={tmp_path / 'old.csv'}:sift"], 10.0, None, "viewpoint")
