@@ -2,13 +2,12 @@
 sidecar overrides, batching, and the export script (tiny models built in the test)."""
 
 import dataclasses
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pycolmap
 import pytest
+from scripts_util import load_script
 
 onnx = pytest.importorskip("onnx")
 from onnx import TensorProto, helper  # noqa: E402
@@ -16,7 +15,6 @@ from onnx import TensorProto, helper  # noqa: E402
 from rectified_colmap.depth.contract import PREFIX, ModelSpec, attach_metadata  # noqa: E402
 from rectified_colmap.depth.onnx import OnnxDepthSource, input_geometry, preprocess  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
 H, W = 48, 64
 R_LEFT, R_RIGHT = 200, 50
 
@@ -218,19 +216,10 @@ def test_contract_round_trip_and_errors(tmp_path):
         OnnxDepthSource(tmp_path / "junk.onnx")
 
 
-def _export_module():
-    spec = importlib.util.spec_from_file_location(
-        "export_depth_onnx", ROOT / "scripts" / "export_depth_onnx.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.mark.parametrize("precision", ["fp32", "fp16", "fp16_storage"])
 def test_export_script_round_trip(tmp_path, precision):
     torch = pytest.importorskip("torch")
-    exporter = _export_module()
+    exporter = load_script("export_depth_onnx")
     torch.manual_seed(0)
 
     class Tiny(torch.nn.Module):

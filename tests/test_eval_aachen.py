@@ -2,14 +2,13 @@
 two-view-geometry fix, result files, hloc checks (generation by signature, clear errors),
 camera databases, the mini Aachen, LightGlue orientations. Real hloc: test_hloc_integration."""
 
-import importlib.util
 import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
 import pytest
+from scripts_util import load_script
 
 from rectified_colmap.eval.aachen import (
     HlocError,
@@ -30,17 +29,6 @@ from rectified_colmap.eval.aachen import (
 )
 from rectified_colmap.eval.localize import QueryResult, build_reference, write_poses
 from rectified_colmap.eval.pairs import read_pair_list, write_pair_list
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location(
-        "aachen_hloc", ROOT / "scripts" / "aachen_hloc.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_query_list_roundtrip_and_grouping(tmp_path):
@@ -167,7 +155,7 @@ def test_results_file(tmp_path):
 
 
 def test_script_hloc_checks(monkeypatch):
-    mod = load_script()
+    mod = load_script("aachen_hloc")
     monkeypatch.setitem(sys.modules, "hloc", None)  # import hloc -> ImportError
     with pytest.raises(SystemExit, match="hloc is not installed.*not on PyPI"):
         mod.require_hloc()

@@ -1,22 +1,11 @@
 """scripts/eval_strecha.py: cameras of a scene (one for Strecha, one per photo elsewhere)."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location(
-        "eval_strecha", ROOT / "scripts" / "eval_strecha.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from scripts_util import load_script
 
 
 def write_scene(path: Path, cams: dict[str, list[float]]) -> None:
@@ -34,7 +23,7 @@ def write_scene(path: Path, cams: dict[str, list[float]]) -> None:
 
 
 def test_scene_cameras_groups_images_by_intrinsics(tmp_path):
-    es = load_script()
+    es = load_script("eval_strecha")
     a, b = [500.0, 500, 320, 240], [600.0, 601, 320, 240]
     write_scene(tmp_path / "s", {"2.jpg": a, "1.jpg": b, "3.jpg": a})
     groups = es.scene_cameras(tmp_path / "s")

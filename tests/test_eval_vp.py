@@ -1,20 +1,10 @@
 """scripts/eval_vp.py: which configuration each table row runs with."""
 
-import importlib.util
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("eval_vp", ROOT / "scripts" / "eval_vp.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from scripts_util import load_script
 
 
 def test_rows_without_vp_run_without_it_although_the_default_has_it():
-    ev = load_script()
+    ev = load_script("eval_vp")
     rows = ev.network_rows(["rectsift-lite0"], with_vp=True)
     cfs = ev.confs(1024, rows, {"rectify": {"max_viewing_angle_deg": 86.0}})
     assert not cfs["rect GT depth"].vp.enabled
@@ -33,7 +23,7 @@ def test_combine_bins_by_viewpoint_change(tmp_path):
 
     from rectified_colmap.eval import report
 
-    ev = load_script()
+    ev = load_script("eval_vp")
     recs = []
     for i, (rot, view) in enumerate([(5.0, 45.0), (5.0, 45.0), (15.0, None)]):
         for method, correct in (("sift", 100), ("rectsift", 120)):

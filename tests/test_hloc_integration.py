@@ -11,7 +11,6 @@ Every comparison is against this tool's plain SIFT through the same hloc calls. 
 tolerances reflect the measured state (docs/hloc.md), not a goal.
 """
 
-import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -20,6 +19,7 @@ from types import SimpleNamespace
 import numpy as np
 import pycolmap
 import pytest
+from scripts_util import load_script
 
 from rectified_colmap.eval import aachen as A
 
@@ -53,15 +53,6 @@ def needs(path: Path):
         )
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location(
-        "aachen_hloc", ROOT / "scripts" / "aachen_hloc.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 # -- mini Aachen from Strecha fountain-P11 ---------------------------------------------------
 
 
@@ -70,7 +61,7 @@ def mini(tmp_path_factory):
     """scripts/aachen_hloc.py as documented, for rectified SIFT and plain SIFT."""
     needs(FOUNTAIN)
     root = tmp_path_factory.mktemp("mini_aachen")
-    script = load_script()
+    script = load_script("aachen_hloc")
     out = {}
     for method in ("rectsift", "sift"):
         argv = [

@@ -4,6 +4,8 @@ import numpy as np
 import pycolmap
 import pytest
 
+from scripts_util import load_script
+
 from rectified_colmap.eval.wide_pairs import (
     incidence,
     reconstruction_arrays,
@@ -112,20 +114,12 @@ def test_select_pairs_orders_names_and_ignores_unseen_images():
 
 
 def test_build_wide_pairs_script(tmp_path, caplog):
-    import importlib.util
-    from pathlib import Path
-
     import cv2
 
     from rectified_colmap.eval.pairs import read_pairs_with_gt
     from rectified_colmap.eval.wide_pairs import read_viewpoints
 
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location(
-        "build_wide_pairs", root / "scripts" / "build_wide_pairs.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("build_wide_pairs")
 
     rng = np.random.default_rng(1)
     tracks = [[0, 1, 2]] * 40 + [[0, 1]] * 20
