@@ -2,10 +2,13 @@
 """Plain vs rectified SIFT on the Strecha scenes: relative pose per pair and localization.
 
 Reproducible benchmark behind docs/evaluation.md. Per scene of ``--data`` (folders with
-images/, sparse/ and pairs_with_gt.txt, see the data README):
+images/, sparse/ and pairs_with_gt.txt, see the data README; the wide-baseline scenes of
+scripts/build_wide_pairs.py have the same layout plus pairs.csv, whose viewpoint changes
+add tables by viewpoint change):
 
-1. features per method into ``<output_dir>/features/<scene>/<method>.h5`` with
-   rectified_colmap.extract.extract (resumable; existing files are reused):
+1. features per method of the model's images into ``<output_dir>/features/<scene>/<method>.h5``
+   with rectified_colmap.extract.extract, one call per camera (resumable; existing files
+   are reused):
    ``sift`` = the pipeline without planes (exactly plain COLMAP SIFT), ``rectsift`` = the
    pipeline with depth from ``--depth_path`` and/or ``--depth_model``;
 2. relative pose on every pair of pairs_with_gt.txt (rectified_colmap.eval.relpose), all
