@@ -83,6 +83,12 @@ def parse_args(argv=None):
     p.add_argument("--w_lines", type=float, default=1.0, help="weight of the line-normal loss")
     p.add_argument("--w_sky", type=float, default=0.5, help="weight of the sky loss")
     p.add_argument(
+        "--w_axis",
+        type=float,
+        default=0.0,
+        help="weight of the frame-axis loss (real photos with a trusted Manhattan frame)",
+    )
+    p.add_argument(
         "--stream",
         action="store_true",
         help="read renders from --pool_dir per item (no in-memory pool; the folder may grow)",
@@ -234,7 +240,7 @@ def main(argv=None) -> int:
             errs,
         )
 
-    weights = {"w_lines": args.w_lines, "w_sky": args.w_sky}
+    weights = {"w_lines": args.w_lines, "w_sky": args.w_sky, "w_axis": args.w_axis}
 
     def save_weights(step):
         """Weights only, atomically: parameters in fp16 (half the size; load_checkpoint

@@ -136,6 +136,33 @@ def test_augmentation_keeps_geometry(renders, flip):
     valid = c["depth"][1:-1, 1:-1] > 0
     cos = (est * c["normals"][1:-1, 1:-1]).sum(-1)[valid]
     assert np.median(cos) > 0.99
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_augmentation_keeps_frame(renders, flip):
+    """A Manhattan frame (rows: directions in the camera frame) follows the crop and the
+    flip as the normals do: the main surface's normal stays one of its axes."""
+    rng = np.random.default_rng(4)
+    s = dict(renders[0])
+    n = s["normals"].reshape(-1, 3).astype(np.float64)[s["depth"].ravel() > 0]
+    n0 = np.median(n, axis=0)
+    n0 /= np.linalg.norm(n0)
+    assert abs(n0[0]) > 0.05  # not symmetric under the flip
+    u = np.cross(n0, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    s["frame"] = np.stack([n0, u, np.cross(n0, u)])
+    c = random_zoom_crop(s, rng, 96, 128, min_zoom=1.0)
+    if flip:
+        c = hflip(c)
+    assert np.allclose(c["frame"] @ c["frame"].T, np.eye(3), atol=1e-9)
+    cn = c["normals"].reshape(-1, 3).astype(np.float64)
+    cn = cn[c["depth"].ravel() > 0]
+    on_axis = np.abs(cn @ c["frame"][0]) > 0.999
+    same = np.abs(cn @ n0) > 0.999  # where the unflipped normal would still be found
+    assert on_axis.sum() > 20
+    assert flip == (same.sum() == 0)
+    a = augment(s, rng, 48, 64)
+    assert a["frame"].shape == (3, 3) and a["frame"].dtype == np.float32
     a = augment(s, rng, 48, 64)
     assert a["image"].shape == (3, 48, 64) and a["image"].dtype == np.float32
     assert a["depth"].shape == (1, 48, 64) and a["normals"].shape == (3, 48, 64)

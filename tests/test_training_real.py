@@ -161,6 +161,36 @@ def test_label_normal_and_sky_losses():
     assert losses.sky_loss(-logit, sky) > 10
 
 
+def test_frame_axis_loss():
+    """1 - cos of the angle to the nearest frame axis, on pixels within the gate, sky and
+    frame-less images excluded."""
+    torch = pytest.importorskip("torch")
+    import cv2
+
+    from rectified_colmap.training import losses
+
+    n = np.array([0.3, -0.4, -0.8])
+    n /= np.linalg.norm(n)
+    K = np.array([[80.0, 0, 50], [0, 80, 30], [0, 0, 1]])
+    h, w = 60, 100
+    log_z = torch.from_numpy(np.log(plane_depth(n, K, h, w)))[None, None]
+    Kt = torch.from_numpy(K)[None]
+    u = np.cross(n, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    frame = np.stack([-n, u, np.cross(n, u)])  # the sign of an axis does not matter
+
+    def loss(f, sky=None):
+        return float(losses.frame_axis_loss(log_z, torch.from_numpy(f)[None], Kt, sky))
+
+    assert loss(frame) < 1e-12
+    tilt = cv2.Rodrigues(u[:, None] * np.deg2rad(10.0))[0]  # the plane's axis 10 degrees off
+    assert loss(frame @ tilt.T) == pytest.approx(1 - np.cos(np.deg2rad(10.0)), abs=1e-9)
+    far = cv2.Rodrigues(u[:, None] * np.deg2rad(40.0))[0]  # outside the 30-degree gate: clutter
+    assert loss(frame @ far.T) == 0 and loss(np.full((3, 3), np.nan)) == 0
+    sky = torch.ones(1, 1, h, w, dtype=torch.float64)
+    assert loss(frame @ tilt.T, sky) == 0
+
+
 def test_sky_head_zeroes_depth():
     torch = pytest.importorskip("torch")
     from rectified_colmap.training.model import DepthNet

@@ -7,9 +7,12 @@ pixel at (0.5, 0.5)).
 
 A training item (torch, from :class:`PoolDataset`): ``image`` (3, h, w) float32 normalised
 as the network expects (``p / 128 - 127 / 128``), ``depth`` (1, h, w), ``normals`` (3, h, w),
-``K`` (3, 3) float32 of the crop. Geometric augmentation (random zoom-crop, horizontal flip)
-keeps K, depth and normals exact; photometric augmentation (exposure, gamma, colour,
-saturation, haze, blur, noise, JPEG) touches only the image.
+``K`` (3, 3) float32 of the crop, ``sky`` (1, h, w) (1 sky, 0 not, 255 unknown), ``real`` ()
+1 for real photos, ``frame`` (3, 3) float32 the photo's trusted Manhattan frame in the crop's
+camera frame (rows: unit directions; NaN where none, and on renders). Geometric
+augmentation (random zoom-crop, horizontal flip) keeps K, depth, normals and frame exact;
+photometric augmentation (exposure, gamma, colour, saturation, haze, blur, noise, JPEG)
+touches only the image.
 
 Views are rendered by :func:`render_pool` with ``rectified_colmap.synth`` (street, corner and
 square scenes, procedural or photo facades, random cameras: :func:`synth_sample`).
@@ -134,6 +137,8 @@ def random_zoom_crop(
     }
     if "sky" in s:
         out["sky"] = cv2.warpAffine(s["sky"], a_cv, flags=cv2.INTER_NEAREST, **warp)
+    if "frame" in s:  # a zoom and a shift of the pixels: camera directions do not change
+        out["frame"] = s["frame"]
     K = np.array(s["K"], np.float64).copy()
     K[:2] = np.concatenate([a[:, :2] @ K[:2, :2], (a[:, :2] @ K[:2, 2:] + a[:, 2:])], 1)
     out["K"] = K
@@ -154,6 +159,8 @@ def hflip(s: dict) -> dict:
     }
     if "sky" in s:
         out["sky"] = s["sky"][:, ::-1].copy()
+    if "frame" in s:  # rows are directions: mirror their x
+        out["frame"] = s["frame"] * np.array([-1.0, 1.0, 1.0])
     return out
 
 
@@ -214,6 +221,7 @@ def augment(
         "K": s["K"].astype(np.float32),
         "sky": sky[None].astype(np.float32),
         "real": np.float32(real),
+        "frame": np.asarray(s.get("frame", np.full((3, 3), np.nan)), np.float32),
     }
 
 

@@ -12,6 +12,8 @@ per-image constant to ``pred_log`` (a global scale of the depth).
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -163,6 +165,25 @@ def label_normal_loss(pred_log, normals, K, real):
     return ((1 - cos) * mask).sum() / mask.sum().clamp(min=1)
 
 
+def frame_axis_loss(pred_log, frame, K, sky=None, max_angle_deg: float = 30.0):
+    """Mean (1 - max_k |cos(n, d_k)|): how far the normals of the predicted depth are from
+    the nearest axis d_k of each image's Manhattan frame ``frame`` (B, 3, 3) (rows: unit
+    directions; NaN: no frame, the image does not count).
+
+    Only on pixels whose predicted normal is already within ``max_angle_deg`` of an axis (the
+    gate is not differentiated): planar surfaces of a Manhattan scene lie on its axes, while
+    trees, cars and people, far from every axis, are left alone. Pixels labelled sky in
+    ``sky`` (B, 1, H, W; 1 = sky) never count. Zero when nothing counts."""
+    n = normals_from_log_depth(pred_log, K)
+    has = torch.isfinite(frame).all(2).all(1)
+    cos = torch.einsum("bkc,bchw->bkhw", torch.nan_to_num(frame), n).abs().amax(1, keepdim=True)
+    gate = (cos.detach() >= math.cos(math.radians(max_angle_deg))) & has[:, None, None, None]
+    if sky is not None:
+        gate = gate & (sky[:, :, 1:-1, 1:-1] != 1)
+    gate = gate.float()
+    return ((1 - cos) * gate).sum() / gate.sum().clamp(min=1)
+
+
 def sky_loss(sky_logit, sky):
     """Binary cross-entropy of the sky logit (B, 1, H, W) against ``sky`` (B, 1, H, W):
     1 sky, 0 not sky, 255 unknown (ignored)."""
@@ -181,10 +202,12 @@ def total_loss(
     w_lines: float = 1.0,
     w_sky: float = 0.5,
     sky_logit=None,
+    w_axis: float = 0.0,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Weighted sum of the losses -> (loss, parts as floats). Batches with ``real`` (B,)
     and ``sky`` (B, 1, H, W) (training.data) add the label-normal loss on real photos and,
-    given ``sky_logit``, the sky loss."""
+    given ``sky_logit``, the sky loss; with ``frame`` (B, 3, 3) and ``w_axis`` > 0, the
+    frame-axis loss."""
     depth, normals, K = batch["depth"], batch["normals"], batch["K"]
     parts = {
         "si": si_log_loss(pred_log, depth),
@@ -198,5 +221,8 @@ def total_loss(
     if sky_logit is not None and "sky" in batch:
         parts["sky"] = sky_loss(sky_logit, batch["sky"])
         weights["sky"] = w_sky
+    if w_axis > 0 and "frame" in batch:
+        parts["axis"] = frame_axis_loss(pred_log, batch["frame"], K, batch.get("sky"))
+        weights["axis"] = w_axis
     loss = sum(weights[k] * v for k, v in parts.items())
     return loss, {k: float(v.detach()) for k, v in parts.items()}
