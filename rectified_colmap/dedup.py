@@ -175,8 +175,10 @@ def keypoint_cap(plain_count: int, conf: DedupConf = DedupConf()) -> int:
 def fill_from_plain(
     rectified: Features, plain: Features, target: int, conf: DedupConf = DedupConf()
 ) -> Features:
-    """Rectified features plus plain ones, without near-duplicates, at most ``target``
-    (``keypoint_cap``).
+    """Rectified features plus plain ones, without near-duplicates: ``target``
+    (``keypoint_cap``) in all where there are enough, or the rectified ones alone where they
+    already exceed it (each patch keeps whole DoG levels, as COLMAP does, so patches can
+    overshoot their shares; they are never cut).
 
     rectified: the features of all patches (patch >= 0), mapped back; plain: plain SIFT
     detected with the whole budget (a superset of what a smaller budget would keep: COLMAP
