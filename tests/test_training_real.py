@@ -131,16 +131,22 @@ def test_line_labels_match_rendered_normals(tmp_path):
 
 
 # -- torch: losses, sky head ----------------------------------------------------------------
-def test_label_normal_and_sky_losses():
-    torch = pytest.importorskip("torch")
-    from rectified_colmap.training import losses
-
+def _tilted_plane(torch):
+    """A plane seen obliquely: its unit normal n, its exact log-depth (1, 1, h, w), K (1, 3, 3)
+    and (h, w)."""
     n = np.array([0.3, -0.4, -0.8])
     n /= np.linalg.norm(n)
     K = np.array([[80.0, 0, 50], [0, 80, 30], [0, 0, 1]])
     h, w = 60, 100
     log_z = torch.from_numpy(np.log(plane_depth(n, K, h, w)))[None, None]
-    Kt = torch.from_numpy(K)[None]
+    return n, log_z, torch.from_numpy(K)[None], (h, w)
+
+
+def test_label_normal_and_sky_losses():
+    torch = pytest.importorskip("torch")
+    from rectified_colmap.training import losses
+
+    n, log_z, Kt, (h, w) = _tilted_plane(torch)
     labels = torch.zeros(1, 3, h, w, dtype=torch.float64)
     labels[:, :, 10:40, 20:70] = torch.from_numpy(n)[None, :, None, None]
     one = torch.ones(1, dtype=torch.float64)
@@ -169,12 +175,7 @@ def test_frame_axis_loss():
 
     from rectified_colmap.training import losses
 
-    n = np.array([0.3, -0.4, -0.8])
-    n /= np.linalg.norm(n)
-    K = np.array([[80.0, 0, 50], [0, 80, 30], [0, 0, 1]])
-    h, w = 60, 100
-    log_z = torch.from_numpy(np.log(plane_depth(n, K, h, w)))[None, None]
-    Kt = torch.from_numpy(K)[None]
+    n, log_z, Kt, (h, w) = _tilted_plane(torch)
     u = np.cross(n, [1.0, 0.0, 0.0])
     u /= np.linalg.norm(u)
     frame = np.stack([-n, u, np.cross(n, u)])  # the sign of an axis does not matter
