@@ -192,6 +192,33 @@ def test_frame_axis_loss():
     assert loss(frame @ tilt.T, sky) == 0
 
 
+def test_total_loss_shares_the_predicted_normals():
+    """total_loss computes the predicted depth's normals once for the three normal losses:
+    its parts equal each loss computed on its own, on a noisy prediction."""
+    torch = pytest.importorskip("torch")
+    from rectified_colmap.training import losses
+
+    n, log_z, Kt, (h, w) = _tilted_plane(torch)
+    depth = torch.exp(log_z)
+    normals = torch.zeros(1, 3, h, w, dtype=torch.float64)
+    normals[:, :, 5:50, 10:90] = torch.from_numpy(n)[None, :, None, None]
+    u = np.cross(n, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    frame = torch.from_numpy(np.stack([-n, u, np.cross(n, u)]))[None]
+    one = torch.ones(1, dtype=torch.float64)
+    batch = {"depth": depth, "normals": normals, "K": Kt, "real": one, "frame": frame}
+    pred = log_z + 0.01 * torch.randn(log_z.shape, generator=torch.Generator().manual_seed(0))
+    _, parts = losses.total_loss(pred, batch, w_axis=1.0)
+    alone = {
+        "normal": losses.normal_loss(pred, depth, normals, Kt),
+        "lines": losses.label_normal_loss(pred, normals, Kt, one),
+        "axis": losses.frame_axis_loss(pred, frame, Kt),
+    }
+    for k, v in alone.items():
+        assert float(v) > 1e-6, k  # the noise is seen by every loss
+        assert parts[k] == pytest.approx(float(v), rel=1e-12), k
+
+
 def test_sky_head_zeroes_depth():
     torch = pytest.importorskip("torch")
     from rectified_colmap.training.model import DepthNet

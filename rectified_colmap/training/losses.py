@@ -134,9 +134,10 @@ def downsample_level(pred_log, inv_depth, valid, normals, K):
     return pred_log, inv_depth, valid, normals, K
 
 
-def normal_loss(pred_log, depth, normals, K, scales: int = 2):
+def normal_loss(pred_log, depth, normals, K, scales: int = 2, pred_normals=None):
     """Mean (1 - cos) between normals of the predicted depth and GT normals on planar GT
-    pixels, at ``scales`` resolutions (see :func:`downsample_level`)."""
+    pixels, at ``scales`` resolutions (see :func:`downsample_level`). ``pred_normals``:
+    ``normals_from_log_depth(pred_log, K)`` when the caller has it already (full scale)."""
     total = pred_log.new_zeros(())
     valid = valid_mask(depth)
     inv_depth = torch.where(
@@ -147,25 +148,28 @@ def normal_loss(pred_log, depth, normals, K, scales: int = 2):
             pred_log, inv_depth, valid, normals, K = downsample_level(
                 pred_log, inv_depth, valid, normals, K
             )
-        n = normals_from_log_depth(pred_log, K)
+        n = pred_normals if k == 0 and pred_normals is not None else None
+        if n is None:
+            n = normals_from_log_depth(pred_log, K)
         mask = interior_normal_mask(inv_depth, valid, normals).float()
         cos = (n * normals[:, :, 1:-1, 1:-1]).sum(1, keepdim=True)
         total = total + ((1 - cos) * mask).sum() / mask.sum().clamp(min=1)
     return total / scales
 
 
-def label_normal_loss(pred_log, normals, K, real):
+def label_normal_loss(pred_log, normals, K, real, pred_normals=None):
     """Mean (1 - cos) between normals of the predicted depth and LABEL normals (real photos:
     line-support planes of the Manhattan frame), on the labelled pixels of the images with
-    ``real`` (B,) > 0. Zero when nothing is labelled."""
-    n = normals_from_log_depth(pred_log, K)
+    ``real`` (B,) > 0. Zero when nothing is labelled. ``pred_normals``: as in
+    :func:`normal_loss`."""
+    n = normals_from_log_depth(pred_log, K) if pred_normals is None else pred_normals
     lab = normals[:, :, 1:-1, 1:-1]
     mask = ((lab.abs().sum(1, keepdim=True) > 0) & (real[:, None, None, None] > 0)).float()
     cos = (n * lab).sum(1, keepdim=True)
     return ((1 - cos) * mask).sum() / mask.sum().clamp(min=1)
 
 
-def frame_axis_loss(pred_log, frame, K, sky=None, max_angle_deg: float = 30.0):
+def frame_axis_loss(pred_log, frame, K, sky=None, max_angle_deg: float = 30.0, pred_normals=None):
     """Mean (1 - max_k |cos(n, d_k)|): how far the normals of the predicted depth are from
     the nearest axis d_k of each image's Manhattan frame ``frame`` (B, 3, 3) (rows: unit
     directions; NaN: no frame, the image does not count).
@@ -173,8 +177,9 @@ def frame_axis_loss(pred_log, frame, K, sky=None, max_angle_deg: float = 30.0):
     Only on pixels whose predicted normal is already within ``max_angle_deg`` of an axis (the
     gate is not differentiated): planar surfaces of a Manhattan scene lie on its axes, while
     trees, cars and people, far from every axis, are left alone. Pixels labelled sky in
-    ``sky`` (B, 1, H, W; 1 = sky) never count. Zero when nothing counts."""
-    n = normals_from_log_depth(pred_log, K)
+    ``sky`` (B, 1, H, W; 1 = sky) never count. Zero when nothing counts. ``pred_normals``:
+    as in :func:`normal_loss`."""
+    n = normals_from_log_depth(pred_log, K) if pred_normals is None else pred_normals
     has = torch.isfinite(frame).all(2).all(1)
     cos = torch.einsum("bkc,bchw->bkhw", torch.nan_to_num(frame), n).abs().amax(1, keepdim=True)
     gate = (cos.detach() >= math.cos(math.radians(max_angle_deg))) & has[:, None, None, None]
@@ -209,20 +214,23 @@ def total_loss(
     given ``sky_logit``, the sky loss; with ``frame`` (B, 3, 3) and ``w_axis`` > 0, the
     frame-axis loss."""
     depth, normals, K = batch["depth"], batch["normals"], batch["K"]
+    n = normals_from_log_depth(pred_log, K)  # once for the three normal losses
     parts = {
         "si": si_log_loss(pred_log, depth),
         "grad": gradient_loss(pred_log, depth),
-        "normal": normal_loss(pred_log, depth, normals, K),
+        "normal": normal_loss(pred_log, depth, normals, K, pred_normals=n),
     }
     weights = {"si": w_si, "grad": w_grad, "normal": w_normal}
     if "real" in batch:
-        parts["lines"] = label_normal_loss(pred_log, normals, K, batch["real"])
+        parts["lines"] = label_normal_loss(pred_log, normals, K, batch["real"], pred_normals=n)
         weights["lines"] = w_lines
     if sky_logit is not None and "sky" in batch:
         parts["sky"] = sky_loss(sky_logit, batch["sky"])
         weights["sky"] = w_sky
     if w_axis > 0 and "frame" in batch:
-        parts["axis"] = frame_axis_loss(pred_log, batch["frame"], K, batch.get("sky"))
+        parts["axis"] = frame_axis_loss(
+            pred_log, batch["frame"], K, batch.get("sky"), pred_normals=n
+        )
         weights["axis"] = w_axis
     loss = sum(weights[k] * v for k, v in parts.items())
     return loss, {k: float(v.detach()) for k, v in parts.items()}
