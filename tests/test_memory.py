@@ -137,4 +137,6 @@ def test_retained_memory_is_reused(tmp_path):
     faults, grown = int(out[0]), float(out[1])
     scale_space_pages = 288 * 320 * 400 / 4096  # ~9000 pages per new extractor without it
     assert faults < 0.5 * scale_space_pages, faults  # 8 new extractors, none faulted in
-    assert grown < 5, grown
+    # RSS grows by a constant 4 MiB here (1024 pages), by 5 MiB now and then under load;
+    # one scale space not reused would add ~36 MiB
+    assert grown < 0.25 * scale_space_pages * 4096 / 2**20, grown
