@@ -86,15 +86,31 @@ def frame_anisotropy(shapes: np.ndarray) -> np.ndarray:
         return np.where(sv[:, 1] > 0, sv[:, 0] / sv[:, 1], np.inf)
 
 
+def unit_rows(desc: np.ndarray) -> np.ndarray:
+    """(N, D) float32 descriptors scaled to unit rows (zero rows stay zero)."""
+    d = np.asarray(desc, np.float32)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.where(norm > 0, norm, 1.0)
+
+
+def max_cosine(desc: np.ndarray, others: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    """(N,) largest cosine similarity of each descriptor of ``desc`` (N, D) with any of
+    ``others`` (M, D); -1 where M = 0. Chunked: at most ``chunk`` x M similarities at once."""
+    out = np.full(len(desc), -1.0, np.float32)
+    if len(desc) == 0 or len(others) == 0:
+        return out
+    o = unit_rows(others).T
+    for s in range(0, len(desc), chunk):
+        out[s : s + chunk] = (unit_rows(desc[s : s + chunk]) @ o).max(1)
+    return out
+
+
 def cosine_pairs(desc: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """(P,) descriptor cosine similarity of the index pairs (P, 2)."""
     if len(pairs) == 0:
         return np.zeros(0)
-    d = np.asarray(desc, np.float32)
-    norm = np.linalg.norm(d, axis=1)
-    norm[norm == 0] = 1.0
-    a, b = pairs[:, 0], pairs[:, 1]
-    return np.einsum("ij,ij->i", d[a], d[b]) / (norm[a] * norm[b])
+    d = unit_rows(desc)
+    return np.einsum("ij,ij->i", d[pairs[:, 0]], d[pairs[:, 1]])
 
 
 def duplicate_pairs(
@@ -185,12 +201,17 @@ def fill_from_plain(
     keeps the largest scales). Twins are resolved by ``near_duplicate_mask``; then plain
     features are dropped, smallest scale first (as COLMAP's own budget does), until the
     total is ``target``. So a patch that yields fewer features than its share (sky, blur)
-    or whose features were twins leaves its budget to plain SIFT."""
+    or whose features were twins leaves its budget to plain SIFT. Rectified features whose
+    descriptor is within ``conf.max_plain_cosine`` of a kept plain feature's (anywhere in
+    the image) are dropped before plain features make room: they leave their place too."""
     both = Features.concatenate([rectified, plain])
     keep = near_duplicate_mask(both, conf) if conf.enabled else np.ones(len(both), bool)
     n_rect = len(rectified)
     rect_keep = np.flatnonzero(keep[:n_rect])
     plain_keep = np.flatnonzero(keep[n_rect:])
+    if conf.max_plain_cosine < 1.0:  # no rectified feature that crowds a plain one
+        cos = max_cosine(rectified.descriptors[rect_keep], plain.descriptors[plain_keep])
+        rect_keep = rect_keep[cos <= conf.max_plain_cosine]
     room = max(0, target - len(rect_keep))
     if len(plain_keep) > room:
         sv = frame_scales(plain.shapes[plain_keep])

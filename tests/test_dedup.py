@@ -9,8 +9,9 @@ from rectified_colmap.dedup import (
     duplicate_fraction,
     duplicate_pairs,
     fill_from_plain,
-    keypoint_cap,
     frame_anisotropy,
+    keypoint_cap,
+    max_cosine,
     near_duplicate_mask,
     neighbour_pairs,
 )
@@ -151,6 +152,50 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
         got = _rows_of(plain, out.subset(out.patch < 0))
         expect = np.sort(rest[np.argsort(-plain.scales[rest], kind="stable")[:num_plain]])
         np.testing.assert_array_equal(got, expect)  # the largest remaining plain scales
+
+
+def test_max_cosine_equals_brute_force():
+    rng = np.random.default_rng(7)
+    a, b = random_desc(rng, 50), random_desc(rng, 2100)
+    a[0] = 0  # a zero descriptor has cosine 0 with everything
+    ua = a / np.maximum(np.linalg.norm(a.astype(float), axis=1, keepdims=True), 1e-12)
+    ub = b / np.linalg.norm(b.astype(float), axis=1, keepdims=True)
+    np.testing.assert_allclose(max_cosine(a, b, chunk=16), (ua @ ub.T).max(1), atol=1e-5)
+    assert (max_cosine(a, b[:0]) == -1).all() and len(max_cosine(a[:0], b)) == 0
+
+
+def test_fill_from_plain_drops_rectified_features_that_crowd_a_plain_one():
+    """A rectified feature whose descriptor is close to a plain feature's ANYWHERE in the
+    image (not a twin: 200 px away) is dropped with max_plain_cosine, and plain SIFT fills
+    its place; the others stay. Plain twins that win are compared too, not the lost ones."""
+    rng = np.random.default_rng(5)
+    n = 100
+    plain = make_features(
+        rng.uniform(0, 500, (n, 2)),
+        rng.uniform(1, 10, n),
+        np.zeros(n),
+        random_desc(rng, n),
+        np.full(n, -1),
+    )
+    desc = random_desc(rng, 10)
+    desc[:4] = plain.descriptors[:4]  # the same look as plain features 0-3, elsewhere
+    desc[4] = np.clip(plain.descriptors[4].astype(int) + rng.integers(-3, 4, 128), 0, 255)
+    rect = make_features(
+        plain.keypoints[:10] + 200.0, np.full(10, 3.0), np.zeros(10), desc, np.zeros(10)
+    )
+    cos = max_cosine(rect.descriptors, plain.descriptors)
+    assert (cos[:5] > 0.99).all() and (cos[5:] < 0.9).all()
+    out = fill_from_plain(rect, plain, n, DedupConf(max_plain_cosine=0.9))
+    got = out.subset(out.patch >= 0)
+    np.testing.assert_array_equal(got.keypoints, rect.keypoints[5:])
+    assert len(out) == n and (out.patch < 0).sum() == n - 5
+    # off (the default): every rectified feature stays
+    assert ((fill_from_plain(rect, plain, n, DedupConf()).patch >= 0).sum()) == 10
+    # with extra_frac the dropped ones are not replaced: plain SIFT's features all stay
+    out = fill_from_plain(
+        rect, plain, keypoint_cap(n, DedupConf(extra_frac=0.5)), DedupConf(max_plain_cosine=0.9)
+    )
+    assert (out.patch < 0).sum() == n and (out.patch >= 0).sum() == 5
 
 
 K = np.array([[420.0, 0, 240], [0, 420, 180], [0, 0, 1]])
