@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.config import DedupConf, ExtractConf
+from rectified_colmap.config import DedupConf, ExtractConf, confs
 from rectified_colmap.dedup import (
     duplicate_fraction,
     duplicate_pairs,
@@ -247,3 +247,30 @@ def test_pipeline_extra_frac_keeps_plain_sift_and_adds_rectified_features():
     conf.dedup.extra_frac = 0.0
     parity = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
     assert len(parity) == len(plain) and (parity.patch < 0).sum() < len(kept)
+
+
+def test_pipeline_rectsift_plus_dedup_is_plain_sift_plus_uncrowded_features():
+    """rectsift-plus's dedup (plain twins kept, no rectified feature within cosine 0.9 of a
+    plain one, up to +50 %): the output holds every plain SIFT feature, unchanged, and
+    rectified ones on top, none of which crowds a plain feature."""
+    texture = textured_image(900, 900, 11)
+    R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    conf = ExtractConf.from_dict({"dedup": confs["rectsift-plus"]["dedup"]})
+    conf.sift.max_num_features = 2000
+    plain = detect_sift(img, conf.sift)
+    out = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    kept, rect = out.subset(out.patch < 0), out.subset(out.patch >= 0)
+
+    def key(f):
+        return {k.tobytes() + d.tobytes() for k, d in zip(f.keypoints, f.descriptors)}
+
+    assert key(kept) == key(plain) and len(kept) == len(plain)
+    assert len(rect) > 50
+    assert (max_cosine(rect.descriptors, plain.descriptors) <= 0.9).all()
+    # without the cosine rule more rectified features come, some of them crowding
+    conf.dedup.max_plain_cosine = 1.0
+    more = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+    more_rect = more.subset(more.patch >= 0)
+    assert len(more_rect) > len(rect)
+    assert (max_cosine(more_rect.descriptors, plain.descriptors) > 0.9).any()
