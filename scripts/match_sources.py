@@ -9,7 +9,7 @@ was removed, lost to crowding (both endpoints still there), and the new matches;
 reconstruction) also how many are correct (Sampson distance under the model's relative
 pose, on undistorted rays, scaled to pixels by the focal length).
 
-Example (docs/evaluation.md, "Why the superset costs hloc points")::
+Example (docs/evaluation.md, "Crowding")::
 
     python scripts/match_sources.py --plain sift.h5 --features plus=plus.h5 \
         --reference sfm_sift/ --output sources.md
@@ -77,7 +77,7 @@ def run(plain: Path, methods: dict[str, Path], pairs, reference, ratio: float) -
     for a, b in pairs:
         pa, pb = P[a], P[b]
         mp = nn_ratio_mutual(pa["descriptors"], pb["descriptors"], ratio)
-        F = f = None
+        F = f = ok_p = None
         if reference is not None and a in reference and b in reference:
             f = 0.5 * (reference.focal(a) + reference.focal(b))
             F = reference.fundamental(a, b, f)
@@ -104,7 +104,7 @@ def run(plain: Path, methods: dict[str, Path], pairs, reference, ratio: float) -
                 index[m, a],
                 index[m, b],
                 (len(pa["keypoints"]), len(pb["keypoints"])),
-                ok_p if F is not None else None,
+                ok_p,
                 ok_f,
             )
             totals[m] = totals[m] + counts
