@@ -159,7 +159,11 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    result = run(args.plain, methods, pairs, reference, args.ratio)
+    try:
+        result = run(args.plain, methods, pairs, reference, args.ratio)
+    except (KeyError, ValueError) as e:  # an image missing from a file, a malformed file
+        print(f"error: {e.args[0] if e.args else e}", file=sys.stderr)
+        return 1
     table = markdown(result, len(pairs))
     print(table)
     if args.output:

@@ -149,3 +149,27 @@ def test_match_sources_script_with_a_reference_model(tmp_path):
     assert result["keypoints"]["plus"] == 84 / 80
     table = script.markdown(result, 1)
     assert "| plus | 1.050x | 30 | 28 (93.3 %) | 1 | 1 | 0 | 2 (1) | 29 vs 30 |" in table
+
+
+def test_match_sources_script_names_a_file_missing_an_image(tmp_path, capsys):
+    from rectified_colmap.features import Features
+    from rectified_colmap.io.hloc_h5 import HlocFeatureWriter
+
+    rng = np.random.default_rng(3)
+    feats = Features(
+        rng.uniform(0, 100, (20, 2)),
+        np.tile(np.eye(2), (20, 1, 1)) * 2.0,
+        rng.integers(0, 256, (20, 128)).astype(np.uint8),
+        np.full(20, -1, np.int32),
+    )
+    plain, other = tmp_path / "sift.h5", tmp_path / "plus.h5"
+    with HlocFeatureWriter(plain) as w:
+        w.write("a.jpg", feats, (100, 100))
+        w.write("b.jpg", feats, (100, 100))
+    with HlocFeatureWriter(other) as w:
+        w.write("a.jpg", feats, (100, 100))
+    script = load_script("match_sources")
+    assert script.main(["--plain", str(plain), "--features", f"plus={other}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(other) in err[0] and "b.jpg" in err[0]
+    assert script.main(["--plain", str(tmp_path / "none.h5"), "--features", f"plus={other}"]) == 2
