@@ -284,6 +284,14 @@ def coarse_first_pays(
     )
 
 
+def pool_coarse_first(
+    shape: tuple[int, int], max_num_features: int, conf: SiftConf = SiftConf()
+) -> bool:
+    """``coarse_first_pays`` for plain SIFT on the whole image of ``shape`` (the pool), unless
+    ``conf.pool_coarse_first`` is off (exact COLMAP calls: exactly plain SIFT's features)."""
+    return bool(conf.pool_coarse_first) and coarse_first_pays(shape, max_num_features, conf)
+
+
 def patch_first_octave(
     shape: tuple[int, int], max_num_features: int, conf: SiftConf = SiftConf()
 ) -> int:
@@ -370,7 +378,7 @@ def plain_features(
     ]
     n = round(budget * box.size / max(region.sum(), 1))  # SIFT's budget covers the whole box
     box_img = np.ascontiguousarray(gray[y0:y1, x0:x1])
-    feats = detect_sift(box_img, conf, n, coarse_first=coarse_first_pays(box_img.shape, n, conf))
+    feats = detect_sift(box_img, conf, n, coarse_first=pool_coarse_first(box_img.shape, n, conf))
     feats.keypoints += [x0, y0]  # integer offset: the same in every pixel convention
     return feats.subset(keypoints_in_mask(feats.keypoints, region, (W, H)))
 

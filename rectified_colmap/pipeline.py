@@ -26,9 +26,9 @@ from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import (
     Features,
-    coarse_first_pays,
     detect_sift,
     plain_features,
+    pool_coarse_first,
     rectification_budgets,
     rectified_features,
 )
@@ -81,7 +81,7 @@ def timed(timings: dict[str, float], key: str):
 def plain_sift(gray: np.ndarray, conf: ExtractConf) -> Features:
     """Plain SIFT on the whole image with the whole budget (images without planes)."""
     n = conf.sift.max_num_features
-    return detect_sift(gray, conf.sift, n, coarse_first=coarse_first_pays(gray.shape, n, conf.sift))
+    return detect_sift(gray, conf.sift, n, coarse_first=pool_coarse_first(gray.shape, n, conf.sift))
 
 
 def orient_with_vanishing_points(

@@ -16,7 +16,7 @@ from rectified_colmap.dedup import (
     neighbour_pairs,
 )
 from rectified_colmap.depth import DepthMap
-from rectified_colmap.features import Features, detect_sift, similarity_frames
+from rectified_colmap.features import Features, coarse_first_pays, detect_sift, similarity_frames
 from rectified_colmap.pipeline import extract_image
 from tests.conftest import look_at, plane_view, textured_image
 
@@ -274,3 +274,27 @@ def test_pipeline_rectsift_plus_dedup_is_plain_sift_plus_uncrowded_features():
     more_rect = more.subset(more.patch >= 0)
     assert len(more_rect) > len(rect)
     assert (max_cosine(more_rect.descriptors, plain.descriptors) > 0.9).any()
+
+
+def test_pipeline_exact_pool_is_plain_sift_where_coarse_first_pays():
+    """With a budget small enough for coarse-first (>= 500 pixels per feature), the pool of
+    rectsift-plus (``sift.pool_coarse_first`` off) is still exactly plain COLMAP SIFT's
+    features; a coarse-first pool is not (close, but not bit-identical)."""
+    texture = textured_image(900, 900, 11)
+    R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    conf = ExtractConf.from_dict(confs["rectsift-plus"])
+    conf.sift.max_num_features = 300
+    assert coarse_first_pays(img.shape, 300, conf.sift) and not conf.sift.pool_coarse_first
+    plain = detect_sift(img, conf.sift)  # one exact COLMAP call
+
+    def plain_part(c):
+        out = extract_image(img, CAMERA, DepthMap(z, "metric"), c).features
+        assert (out.patch >= 0).any()  # rectified features on top
+        kept = out.subset(out.patch < 0)
+        return {k.tobytes() + d.tobytes() for k, d in zip(kept.keypoints, kept.descriptors)}
+
+    exact = {k.tobytes() + d.tobytes() for k, d in zip(plain.keypoints, plain.descriptors)}
+    assert plain_part(conf) == exact
+    conf.sift.pool_coarse_first = True
+    assert plain_part(conf) != exact
