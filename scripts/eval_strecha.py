@@ -153,6 +153,13 @@ def main(argv=None) -> int:
     )
     p.add_argument("--bin_deg", type=float, default=10.0)
     p.add_argument("--ransac_max_error", type=float, default=None)
+    p.add_argument(
+        "--ransac_runs",
+        type=int,
+        default=1,
+        help="RANSAC runs per pair (seeds 0, 1, ...; odd): median pose errors, majority "
+        "success, and the mean success over runs",
+    )
     p.add_argument("--num_workers", type=int, default=2)
     p.add_argument("--localize", action="store_true", help="also run the localization")
     p.add_argument("--no_plot", action="store_true")
@@ -174,7 +181,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.data}: no scene with pairs_with_gt.txt")
     out = args.output_dir
     out.mkdir(parents=True, exist_ok=True)
-    conf = EvalConf(bin_deg=args.bin_deg)
+    conf = EvalConf(bin_deg=args.bin_deg, ransac_runs=args.ransac_runs)
     if args.ransac_max_error is not None:
         conf.ransac_max_error = args.ransac_max_error
 

@@ -379,3 +379,42 @@ def test_tables_by_viewpoint_change(tmp_path):
     assert all(r["viewpoint"] is None for r in report.read_csv(tmp_path / "old.csv"))
     report.write_outputs(report.read_csv(tmp_path / "old.csv"), tmp_path / "o", EvalConf(), False)
     assert "By viewpoint" not in (tmp_path / "o" / "summary.md").read_text()
+
+
+def test_ransac_runs_take_the_median_and_count_successes():
+    """With ``ransac_runs`` k, a pair's pose errors and inliers are the medians of the k
+    single runs (seeds 0..k-1), ``success`` is the majority's and ``success_rate`` the
+    fraction; on a marginal pair (about 9 correct matches among 30 wrong ones) the runs
+    disagree, which one seed cannot show."""
+    from dataclasses import replace
+
+    from rectified_colmap.eval.relpose import evaluate_matches
+
+    feats, poses = synthetic_scene([0, 40], distractors=0, seed=1)
+    names = sorted(feats)
+    pair = make_pairs(poses, names)[0]
+    f0, f1 = feats[names[0]], feats[names[1]]
+    _, i0, i1 = np.intersect1d(f0["point_ids"], f1["point_ids"], return_indices=True)
+    k, mixed = 5, 0
+    for n_true in (9, 10):
+        rng = np.random.default_rng(1)
+        wrong = rng.integers(0, [len(f0["keypoints"]), len(f1["keypoints"])], (30, 2))
+        m = np.concatenate([np.stack([i0[:n_true], i1[:n_true]], 1), wrong])
+        ev = lambda m=m, **kw: evaluate_matches(  # noqa: E731
+            pair, f0["keypoints"], f1["keypoints"], m, replace(EvalConf(), **kw)
+        )
+        single = [ev(ransac_seed=s) for s in range(k)]
+        both = ev(ransac_runs=k)
+        assert both["R_err"] == pytest.approx(np.median([r["R_err"] for r in single]))
+        assert both["t_err"] == pytest.approx(np.median([r["t_err"] for r in single]))
+        assert both["num_inliers"] == int(np.median([r["num_inliers"] for r in single]))
+        rate = np.mean([r["success"] for r in single])
+        assert both["success_rate"] == pytest.approx(rate)
+        assert both["success"] == (rate > 0.5)
+        assert single[0]["success_rate"] == float(single[0]["success"])
+        mixed += 0 < rate < 1
+    assert mixed  # some pair's runs disagree
+    rec = {"name0": "a", "name1": "b", "method": "m", "gt_rot": 40.0, "category": None}
+    md = report.markdown_table([{**rec, **both}], ransac_runs=k)
+    assert f"success, mean of {k} RANSAC runs %" in md
+    assert "RANSAC runs" not in report.markdown_table([{**rec, **both}])

@@ -52,6 +52,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"essential-matrix RANSAC threshold in pixels ({e.ransac_max_error})",
     )
     p.add_argument(
+        "--ransac_runs",
+        type=int,
+        default=None,
+        help=f"RANSAC runs per pair, seeds 0, 1, ... ({e.ransac_runs}): pose errors are their "
+        "medians, success the majority's, plus the mean success over runs",
+    )
+    p.add_argument(
         "--bin_deg",
         type=float,
         default=None,
@@ -149,7 +156,7 @@ def make_conf(args: argparse.Namespace):
     from ..config import EvalConf
 
     conf = EvalConf()
-    for key in ("ratio", "ransac_max_error", "bin_deg", "epipolar_threshold"):
+    for key in ("ratio", "ransac_max_error", "ransac_runs", "bin_deg", "epipolar_threshold"):
         if getattr(args, key, None) is not None:
             setattr(conf, key, getattr(args, key))
     conf.mutual = bool(getattr(args, "mutual", False))

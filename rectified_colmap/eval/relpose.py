@@ -121,26 +121,32 @@ def evaluate_matches(
     correct = (
         sampson_error(F, x0, x1) < conf.epipolar_threshold if len(matches) else np.zeros(0, bool)
     )
-    est = estimate_relative_pose(x0, x1, pair.K0, pair.K1, conf.ransac_max_error, conf.ransac_seed)
-    if est is None:
-        r_err = t_err = FAILED_DEG
-        n_in = 0
-        n_in_correct = 0
-    else:
+    runs = []  # (R err, t err, inliers, correct inliers) per RANSAC seed
+    for k in range(max(1, conf.ransac_runs)):
+        est = estimate_relative_pose(
+            x0, x1, pair.K0, pair.K1, conf.ransac_max_error, conf.ransac_seed + k
+        )
+        if est is None:
+            runs.append((FAILED_DEG, FAILED_DEG, 0, 0))
+            continue
         R, t, inl = est
-        r_err, t_err = pose_errors(R, t, pair.R, pair.t)
-        n_in = int(inl.sum())
-        n_in_correct = int((inl & correct).sum())
+        runs.append(
+            (*pose_errors(R, t, pair.R, pair.t), int(inl.sum()), int((inl & correct).sum()))
+        )
+    runs = np.array(runs, float)
+    r_err, t_err = np.median(runs[:, 0]), np.median(runs[:, 1])
+    n_in, n_in_correct = np.median(runs[:, 2]), np.median(runs[:, 3])
     num_correct = int(correct.sum())
     return {
         "num_matches": int(len(matches)),
-        "num_inliers": n_in,
+        "num_inliers": int(n_in),
         "num_correct": num_correct,
-        "num_inliers_correct": n_in_correct,
+        "num_inliers_correct": int(n_in_correct),
         "R_err": float(r_err),
         "t_err": float(t_err),
         "pose_err": float(max(r_err, t_err)),
         "success": bool(r_err < conf.success_deg),
+        "success_rate": float(np.mean(runs[:, 0] < conf.success_deg)),
         "epipolar_success": bool(num_correct >= conf.min_correct),
     }
 

@@ -43,6 +43,7 @@ RECORD_FIELDS = [
     "t_err",
     "pose_err",
     "success",
+    "success_rate",
     "epipolar_success",
 ]
 
@@ -135,6 +136,7 @@ def summary(records: list[dict], auc_thresholds=(5.0, 10.0, 20.0)) -> list[dict]
             "method": m,
             "pairs": len(rs),
             "success": float(np.mean([r["success"] for r in rs])),
+            "success_rate": float(np.mean([r.get("success_rate", r["success"]) for r in rs])),
             "epipolar_success": float(np.mean([r["epipolar_success"] for r in rs])),
             "median_matches": float(np.median([r["num_matches"] for r in rs])),
             "median_correct": float(np.median([r["num_correct"] for r in rs])),
@@ -259,20 +261,27 @@ def markdown_table(
     success_deg: float = 5.0,
     min_correct: int | None = None,
     by: str = "gt_rot",
+    ransac_runs: int = 1,
 ) -> str:
     """Two Markdown tables: per-method summary, then success (%) per bin of ``by`` (GT
-    rotation or viewpoint change, BIN_LABELS)."""
+    rotation or viewpoint change, BIN_LABELS). With ``ransac_runs`` > 1 the summary also has
+    the mean success over the RANSAC runs (records' ``success_rate``)."""
     rows = summary(records, auc_thresholds)
     mc = f" (>= {min_correct} GT-correct)" if min_correct is not None else ""
+    runs = [f"success, mean of {ransac_runs} RANSAC runs %"] if ransac_runs > 1 else []
     head = (
-        ["method", "pairs", f"success (R err < {success_deg:g} deg) %", f"epipolar success{mc} %"]
+        ["method", "pairs", f"success (R err < {success_deg:g} deg) %"]
+        + runs
+        + [f"epipolar success{mc} %"]
         + [f"AUC@{t:g} %" for t in auc_thresholds]
         + ["median matches", "median GT-correct", "median R err (deg)"]
     )
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         vals = (
-            [r["method"], str(r["pairs"]), _pct(r["success"]), _pct(r["epipolar_success"])]
+            [r["method"], str(r["pairs"]), _pct(r["success"])]
+            + ([_pct(r["success_rate"])] if runs else [])
+            + [_pct(r["epipolar_success"])]
             + [_pct(r[f"auc@{t:g}"]) for t in auc_thresholds]
             + [
                 f"{r['median_matches']:.0f}",
@@ -330,6 +339,8 @@ def read_csv(path: Path | str) -> list[dict]:
                 r[k] = int(r[k])
             for k in ("success", "epipolar_success"):
                 r[k] = r[k] == "True"
+            # files from before RANSAC runs were counted: one run, its outcome
+            r["success_rate"] = float(r.get("success_rate") or r["success"])
             r["category"] = r["category"] or None
             out.append(r)
     return out
@@ -389,8 +400,14 @@ def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str =
     EvalConf ``conf``. Returns the markdown table."""
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "records.csv", records)
+    runs = conf.ransac_runs
     table = markdown_table(
-        records, conf.bin_deg, conf.auc_thresholds, conf.success_deg, conf.min_correct
+        records,
+        conf.bin_deg,
+        conf.auc_thresholds,
+        conf.success_deg,
+        conf.min_correct,
+        ransac_runs=runs,
     )
     methods = methods_of(records)
     if len(methods) > 1:  # the first method of --features is the baseline
@@ -404,7 +421,12 @@ def write_outputs(records: list[dict], out: Path, conf, plot: bool, title: str =
     if known:  # wide-baseline scenes (scripts/build_wide_pairs.py): by viewpoint change too
         table += f"\nBy viewpoint change ({len(known) // len(methods)} pairs with 3D points)\n\n"
         table += markdown_table(
-            known, conf.bin_deg, conf.auc_thresholds, conf.success_deg, by="viewpoint"
+            known,
+            conf.bin_deg,
+            conf.auc_thresholds,
+            conf.success_deg,
+            by="viewpoint",
+            ransac_runs=runs,
         )
         if len(methods) > 1:
             table += "\n" + paired_markdown(known, methods[0], conf.bin_deg, "viewpoint")
