@@ -25,7 +25,7 @@ def test_merge_conf_overrides_key_by_key_and_changes_no_input():
     overrides = {"vp": {"line_hypotheses": 1}, "sift": {"max_num_features": 1024}}
     merged = merge_conf(base, overrides)
     assert merged["vp"] == {"line_hypotheses": 1, "hypothesis_min_tilt_deg": 50.0}
-    assert merged["sift"] == {"max_num_features": 1024}
+    assert merged["sift"] == {"pool_coarse_first": False, "max_num_features": 1024}
     assert merged["dedup"] == base["dedup"] and merged["rectify"] == base["rectify"]
     assert base == before and overrides["vp"] == {"line_hypotheses": 1}
     assert merge_conf(base, None) == base
