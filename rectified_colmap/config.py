@@ -154,7 +154,7 @@ class SiftConf:
     plain SIFT at any budget), at COLMAP's time and memory for the pool (patches keep
     ``coarse_first``). Strecha at 1024 features, where coarse-first pays: the coarse-first
     pool alone has fewer GT-correct matches than plain SIFT on 80 pairs, more on 36
-    (docs/benchmarks.md); ``rectsift-plus`` with the exact pool more on 67, fewer on 7."""
+    (docs/benchmarks.md); ``rectsift-plus`` with the exact pool more on 64, fewer on 9."""
 
 
 DISPARITY_SHIFTS = ("zero", "orthogonal")
@@ -385,6 +385,10 @@ class EvalConf:
     """A match is correct when its Sampson error under the GT geometry is below this (px)."""
     min_correct: int = 20
     """Degeneracy-aware success: at least this many GT-correct matches."""
+
+    def __post_init__(self):
+        if int(self.ransac_runs) < 1:
+            raise ValueError(f"ransac_runs must be at least 1, got {self.ransac_runs}")
 
 
 @dataclass

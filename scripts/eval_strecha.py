@@ -181,7 +181,10 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.data}: no scene with pairs_with_gt.txt")
     out = args.output_dir
     out.mkdir(parents=True, exist_ok=True)
-    conf = EvalConf(bin_deg=args.bin_deg, ransac_runs=args.ransac_runs)
+    try:
+        conf = EvalConf(bin_deg=args.bin_deg, ransac_runs=args.ransac_runs)
+    except ValueError as e:
+        raise SystemExit(f"--ransac_runs: {e}") from None
     if args.ransac_max_error is not None:
         conf.ransac_max_error = args.ransac_max_error
 

@@ -249,6 +249,14 @@ def test_cli_evaluate_pairs(tmp_path):
     assert rc == 0
     md = (tmp_path / "out" / "summary.md").read_text()
     assert "| a | 3 | 100.0 |" in md and "| b | 3 | 100.0 |" in md
+    # three RANSAC runs per pair: the mean success column; zero runs: a one-line error
+    args = ["evaluate-pairs", "--pairs", str(tmp_path / "pairs.txt"), "--no_plot"]
+    args += ["--features", f"a={tmp_path / 'a.h5'}", "--no_progress", "--output_dir"]
+    assert main(args + [str(tmp_path / "o3"), "--ransac_runs", "3"]) == 0
+    md = (tmp_path / "o3" / "summary.md").read_text()
+    assert "success, mean of 3 RANSAC runs %" in md and "| a | 3 | 100.0 | 100.0 |" in md
+    assert main(args + [str(tmp_path / "o4"), "--ransac_runs", "0"]) == 2
+    assert not (tmp_path / "o4").exists()
     png = (tmp_path / "out" / "success.png").read_bytes()
     assert png[:4] == b"\x89PNG" and len(png) > 5000
     with pytest.raises(SystemExit, match="is not a file"):

@@ -160,6 +160,7 @@ def make_conf(args: argparse.Namespace):
         if getattr(args, key, None) is not None:
             setattr(conf, key, getattr(args, key))
     conf.mutual = bool(getattr(args, "mutual", False))
+    conf.__post_init__()  # the section's own validation (ValueError: a one-line error)
     return conf
 
 

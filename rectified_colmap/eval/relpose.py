@@ -122,7 +122,7 @@ def evaluate_matches(
         sampson_error(F, x0, x1) < conf.epipolar_threshold if len(matches) else np.zeros(0, bool)
     )
     runs = []  # (R err, t err, inliers, correct inliers) per RANSAC seed
-    for k in range(max(1, conf.ransac_runs)):
+    for k in range(conf.ransac_runs):
         est = estimate_relative_pose(
             x0, x1, pair.K0, pair.K1, conf.ransac_max_error, conf.ransac_seed + k
         )
