@@ -338,7 +338,7 @@ confs: dict[str, dict[str, Any]] = {
     # every plain SIFT feature is kept unchanged (a rectified twin never replaces it, and the
     # pool is exact COLMAP SIFT at every size), and no rectified feature may crowd one
     # (descriptor cosine > 0.9 with any plain feature of the image). 4 of 7 evd-dev pairs,
-    # hloc Sacre Coeur 1569 vs 1572 3D points (8 seeds: a tie); Strecha (5 RANSAC runs):
+    # hloc Sacre Coeur 1576 vs 1580 3D points (8 seeds: a tie); Strecha (5 RANSAC runs):
     # success 100 vs 100 % at 8192 features and 92.2 vs 90.6 % at 1024, GT-correct not
     # lower than plain SIFT's in any rotation bin. Costs: +9-37 % keypoints, 1.6x plain
     # SIFT's time on rendered streets, 3.1 GB and 1.75x at 6000x4000 (docs/evaluation.md
