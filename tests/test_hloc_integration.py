@@ -11,6 +11,7 @@ Every comparison is against this tool's plain SIFT through the same hloc calls. 
 tolerances reflect the measured state (docs/hloc.md), not a goal.
 """
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -359,7 +360,7 @@ def test_eval_hloc_sfm_script_over_seeds(sacre_coeur, tmp_path, capsys):
     argv = ["--images", str(sacre_coeur.images), "--output_dir", str(out), "--methods", "sift"]
     argv += ["--variant", "plus=rectsift-plus", "--max_num_features", str(NUM_FEATURES)]
     assert script.main(argv + ["--seeds", "0", "1"]) == 0
-    rows = __import__("json").loads((out / "hloc_sfm.json").read_text())
+    rows = json.loads((out / "hloc_sfm.json").read_text())
     assert [(r["method"], r["seed"]) for r in rows] == [
         ("sift", 0),
         ("sift", 1),
@@ -378,20 +379,3 @@ def test_eval_hloc_sfm_script_over_seeds(sacre_coeur, tmp_path, capsys):
     assert len(stamp) == 4  # features and matches of both methods
     assert script.main(argv + ["--seeds", "2"]) == 0
     assert {f: f.stat().st_mtime_ns for f in out.glob("*/*.h5")} == stamp
-
-
-def test_eval_hloc_sfm_table_pairs_seeds():
-    """The table's statistics (no hloc needed to compute them, but the module is here)."""
-    script = load_script("eval_hloc_sfm")
-    rows = [
-        {"method": "sift", "seed": s, "registered": 10, "points": p}
-        for s, p in [(0, 100), (1, 110), (2, 90)]
-    ]
-    rows += [
-        {"method": "x", "seed": s, "registered": r, "points": p}
-        for s, r, p in [(0, 9, 104), (1, 10, 107), (2, 10, 102)]
-    ]
-    table = script.markdown(rows)
-    assert "| sift | 10-10 | 100 110 90 | 100.0 | 10.0 | - | - |" in table
-    # x - sift per seed: +4, -3, +12 -> mean +4.33 (+4.3 %), higher on 2, lower on 1
-    assert "| x | 9-10 | 104 107 102 | 104.3 | 2.5 | +4.3 (+4.3%) | 2 / 1 |" in table
