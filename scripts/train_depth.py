@@ -111,8 +111,13 @@ def parse_args(argv=None):
         "--init",
         type=Path,
         default=None,
-        help="start from the weights of this checkpoint (a new optimizer and "
-        "schedule: fine-tuning)",
+        help="start from the weights of this checkpoint, or of an exported .onnx (a new "
+        "optimizer and schedule: fine-tuning; from .onnx, BatchNorm is folded: use --freeze_bn)",
+    )
+    p.add_argument(
+        "--freeze_bn",
+        action="store_true",
+        help="BatchNorm in eval mode with fixed parameters (small batches, --init X.onnx)",
     )
     return p.parse_args(argv)
 
@@ -129,7 +134,7 @@ def main(argv=None) -> int:
 
     from rectified_colmap.training.data import PoolDataset, render_pool
     from rectified_colmap.training.export import export_onnx, model_spec
-    from rectified_colmap.training.model import build_model
+    from rectified_colmap.training.model import build_model, load_onnx_weights
     from rectified_colmap.training.train import (
         lr_factor,
         make_optimizer,
@@ -187,12 +192,16 @@ def main(argv=None) -> int:
         sky=args.sky,
         encoder_weights=args.encoder_weights,
     )
-    opt = make_optimizer(model, args.lr)
-    start = 0
-    if args.init is not None:
+    if args.init is not None and args.init.suffix == ".onnx":
+        model = load_onnx_weights(args.init, width=args.decoder_width)
+        if model.has_sky != args.sky:
+            raise SystemExit(f"{args.init}: sky head {model.has_sky}, --sky {args.sky}")
+    elif args.init is not None:
         ck = torch.load(args.init, map_location="cpu", weights_only=False)
         model.load_state_dict(ck["model"])
         logger.info("initialised from %s (step %d)", args.init, ck["step"])
+    opt = make_optimizer(model, args.lr)
+    start = 0
     if args.resume and (args.out / "last.pt").is_file():
         ck = torch.load(args.out / "last.pt", map_location="cpu", weights_only=False)
         model.load_state_dict(ck["model"])
@@ -275,7 +284,7 @@ def main(argv=None) -> int:
             break
         set_lr(opt, args.lr * lr_factor(progress))
         batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-        loss, parts = train_step(model, batch, opt, weights, amp_dtype)
+        loss, parts = train_step(model, batch, opt, weights, amp_dtype, args.freeze_bn)
         step += 1
         for k, v in {"loss": loss, **parts}.items():
             running[k] = running.get(k, 0.0) + v

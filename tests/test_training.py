@@ -267,3 +267,52 @@ def test_evaluate_real_against_line_frame(tmp_path):
 
     bad = evaluate_real(tilted, [tmp_path / "s"])
     assert bad["real_dir_err_median"] > exact["real_dir_err_median"] + 3.0
+
+
+def test_load_onnx_weights_reproduces_the_exported_network(tmp_path):
+    """An exported network (BatchNorm folded, fp16-stored weights) comes back as a DepthNet
+    that computes what onnxruntime computes; with BatchNorm frozen a training step leaves
+    the BatchNorm statistics alone."""
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from rectified_colmap.training.export import export_onnx, model_spec
+    from rectified_colmap.training.model import load_onnx_weights
+
+    torch.manual_seed(0)
+    net = DepthNet(width=16, sky=True)
+    with torch.no_grad():  # non-trivial BatchNorm statistics, so that folding matters
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+    path = tmp_path / "m.onnx"
+    export_onnx(
+        net.eval(), path, model_spec(), height=64, width=96, verify=False, fp16_storage=True
+    )
+    back = load_onnx_weights(path).eval()  # the decoder width is read from the file
+    assert back.has_sky
+    x = torch.randn(1, 3, 64, 96)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    (out,) = sess.run(["depth"], {"image": x.numpy()})
+    with torch.no_grad():
+        ref = back(x).numpy()
+    np.testing.assert_allclose(ref, out, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="proj.0.weight is"):
+        load_onnx_weights(path, width=32)
+
+    before = {k: v.clone() for k, v in back.state_dict().items() if "running" in k}
+    opt = make_optimizer(back, 1e-3)
+    img = np.random.default_rng(0).integers(0, 255, (2, 64, 96, 3), dtype=np.uint8)
+    depth = torch.rand(2, 1, 64, 96) + 1.0
+    batch = {
+        "image": torch.stack([torch.from_numpy(normalise(i)) for i in img]),
+        "depth": depth,
+        "normals": torch.zeros(2, 3, 64, 96),
+        "K": torch.tensor([[50.0, 0, 48], [0, 50, 32], [0, 0, 1]]).expand(2, 3, 3),
+    }
+    w0 = back.head[0].weight.detach().clone()
+    train_step(back, batch, opt, freeze_bn=True)
+    after = {k: v for k, v in back.state_dict().items() if "running" in k}
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert not torch.equal(w0, back.head[0].weight)  # the rest did train

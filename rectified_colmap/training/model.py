@@ -16,6 +16,7 @@ This module needs torch (the optional ``[train]`` extra); the runtime never impo
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import torch
@@ -233,4 +234,99 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> DepthNet:
         raise ValueError(f"{path}: not a DepthNet checkpoint (no 'model' state dict)")
     model = DepthNet(width=int(ckpt.get("width", 64)), sky=bool(ckpt.get("sky", False)))
     model.load_state_dict(ckpt["model"])
+    return model
+
+
+def _onnx_conv_params(path: Path) -> list[tuple[str, object, object]]:
+    """(weight name, weight, bias or None) of each Conv node of an exported DepthNet, in
+    graph order, as float32 numpy arrays (fp16-stored weights are read through their Cast)."""
+    import onnx
+    from onnx import numpy_helper
+
+    graph = onnx.load(str(path)).graph
+    init = {t.name: t for t in graph.initializer}
+    cast = {n.output[0]: n.input[0] for n in graph.node if n.op_type == "Cast"}
+
+    def value(name):
+        src = cast.get(name, name)
+        return None if src not in init else numpy_helper.to_array(init[src]).astype("float32")
+
+    out = []
+    for n in graph.node:
+        if n.op_type == "Conv":
+            w = value(n.input[1])
+            if w is None:
+                raise ValueError(f"{path}: Conv {n.name} has a computed weight")
+            b = value(n.input[2]) if len(n.input) > 2 and n.input[2] else None
+            out.append((n.input[1], w, b))
+    return out
+
+
+def load_onnx_weights(path: str | Path, width: int | None = None) -> DepthNet:
+    """A DepthNet with the weights of an ONNX file exported from one (e.g. the shipped
+    ``rectsift-depth-lite0.onnx``), to fine-tune it when its checkpoint is gone.
+
+    The export folds each BatchNorm into the convolution before it; such a pair comes back
+    as the folded convolution and an identity BatchNorm (scale 1, mean 0, variance
+    ``1 - eps``) whose bias is the folded bias, which computes the same function in eval
+    mode (fine-tune with BatchNorm frozen: ``freeze_batchnorm``). Decoder convolutions keep
+    their names in the graph and are matched by name; the folded (renamed) encoder ones by
+    their order, which is the encoder's execution order. ``width``: the decoder's, read
+    from the file by default. Shapes are checked throughout."""
+    path = Path(path)
+    convs = _onnx_conv_params(path)
+    named = {re.sub(r"(_fp16)$", "", n): (w, b) for n, w, b in convs}
+    anonymous = [(w, b) for n, w, b in convs if n.startswith("onnx::")]
+    if "proj.0.weight" not in named:
+        raise ValueError(f"{path}: not an exported DepthNet (no proj.0.weight)")
+    width = named["proj.0.weight"][0].shape[0] if width is None else width
+    model = DepthNet(width=width, sky=any(k.startswith("sky_head.") for k in named))
+    enc = model.encoder
+    pairs = [(enc._conv_stem, enc._bn0)]
+    for blk in enc._blocks:
+        if blk.expand:
+            pairs.append((blk._expand_conv, blk._bn0))
+        pairs += [(blk._depthwise_conv, blk._bn1), (blk._project_conv, blk._bn2)]
+    if len(anonymous) != len(pairs):
+        raise ValueError(
+            f"{path}: {len(anonymous)} folded convolutions, the encoder has {len(pairs)}"
+        )
+    with torch.no_grad():
+        for (conv, bn), (w, b) in zip(pairs, anonymous):
+            if tuple(conv.weight.shape) != w.shape or b is None or b.shape != (bn.num_features,):
+                raise ValueError(f"{path}: folded convolution {w.shape} does not fit {conv}")
+            conv.weight.copy_(torch.from_numpy(w))
+            bn.weight.fill_(1.0)
+            bn.bias.copy_(torch.from_numpy(b))
+            bn.running_mean.zero_()
+            bn.running_var.fill_(1.0 - bn.eps)
+        used = set()
+        for name, module in model.named_modules():
+            if isinstance(module, nn.Conv2d) and not name.startswith("encoder."):
+                key = f"{name}.weight"
+                if key not in named:
+                    continue  # fuse.4.skip_unit: never called, not in the graph
+                w, b = named[key]
+                if tuple(module.weight.shape) != w.shape:
+                    raise ValueError(f"{path}: {key} is {w.shape}, expected {module.weight.shape}")
+                module.weight.copy_(torch.from_numpy(w))
+                if module.bias is not None:
+                    module.bias.copy_(torch.from_numpy(b))
+                used.add(key)
+    left = {k for k in named if not k.startswith("onnx::")} - used
+    if left:
+        raise ValueError(f"{path}: convolutions not in DepthNet: {sorted(left)[:5]}")
+    logger.info("loaded DepthNet weights from %s (%d convolutions)", path, len(convs))
+    return model
+
+
+def freeze_batchnorm(model: nn.Module) -> nn.Module:
+    """Put every BatchNorm in eval mode with its parameters fixed (running statistics
+    used, not updated): fine-tuning with small batches, or from :func:`load_onnx_weights`.
+    Call after ``model.train()``, which would switch them back."""
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.eval()
+            for p in m.parameters():
+                p.requires_grad_(False)
     return model

@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 
 from .losses import total_loss
+from .model import freeze_batchnorm
 
 logger = logging.getLogger(__name__)
 
@@ -43,11 +44,14 @@ def set_lr(opt, lr: float) -> None:
 
 
 def train_step(
-    model, batch: dict, opt, weights: dict | None = None, amp_dtype=None
+    model, batch: dict, opt, weights: dict | None = None, amp_dtype=None, freeze_bn=False
 ) -> tuple[float, dict]:
     """One optimiser step. ``amp_dtype`` (e.g. torch.bfloat16 on a GPU): the network runs
-    under autocast, the losses in float32."""
+    under autocast, the losses in float32. ``freeze_bn``: BatchNorm in eval mode, fixed
+    (:func:`~rectified_colmap.training.model.freeze_batchnorm`)."""
     model.train()
+    if freeze_bn:
+        freeze_batchnorm(model)
     with torch.autocast(batch["image"].device.type, amp_dtype, enabled=amp_dtype is not None):
         pred_log, sky_logit = model.forward_train(batch["image"])
     pred_log = pred_log.float()
