@@ -270,3 +270,75 @@ def test_pool_dataset_mixes_real_samples(tmp_path):
         else:  # renders: sky exactly where there is no depth
             assert v <= {0.0, 1.0}
             assert np.array_equal(item["sky"].numpy() == 1, item["depth"].numpy() <= 0)
+
+
+def _two_plane_points(rng, n=1500, noise=0.005):
+    """World points on a wall (z = 5, x in [-2, 0]) and a ground (y = 1.5, x in [0.3, 2],
+    z in [3, 8]), camera-frame axes, with 10 % outliers in the box between."""
+    wall = np.column_stack([rng.uniform(-2, 0, n), rng.uniform(-1, 1.4, n), np.full(n, 5.0)])
+    ground = np.column_stack([rng.uniform(0.3, 2, n), np.full(n, 1.5), rng.uniform(3, 8, n)])
+    out = rng.uniform([-2, -1, 3], [2, 1.5, 8], (n // 5, 3))
+    pts = np.vstack([wall, ground]) + rng.normal(0, noise, (2 * n, 3)).clip(-3 * noise, 3 * noise)
+    truth = np.r_[np.zeros(n, int), np.ones(n, int), np.full(len(out), -1)]
+    return np.vstack([pts, out]), truth
+
+
+def test_fit_planes_recovers_wall_and_ground():
+    rng = np.random.default_rng(3)
+    pts, truth = _two_plane_points(rng)
+    planes, labels = real.fit_planes(pts, threshold=0.03, min_inliers=200)
+    assert len(planes) == 2
+    for k, normal, d in ((0, [0, 0, 1], -5.0), (1, [0, 1, 0], -1.5)):
+        # which fitted plane holds the true plane's points, and is it the true plane
+        p = np.bincount(labels[truth == k][labels[truth == k] >= 0]).argmax()
+        # (the wall plane, fitted first, also takes the 1.2 % of ground points near z = 5)
+        assert np.mean(labels[truth == k] == p) > 0.98
+        s = np.sign(planes[p, :3] @ normal)
+        assert np.allclose(s * planes[p, :3], normal, atol=2e-3)
+        assert abs(s * planes[p, 3] - d) < 0.01
+    assert np.mean(labels[truth == -1] == -1) > 0.9  # outliers stay unlabelled
+
+
+def test_plane_normal_map_labels_only_where_points_are_dense():
+    """A posed camera sees the wall and the ground: labelled pixels carry exactly the
+    planes' normals in the camera frame, facing the camera, and only near their points."""
+    rng = np.random.default_rng(4)
+    pts, truth = _two_plane_points(rng, n=4000, noise=0.0)
+    # move the world: world = A (camera frame) + b; the camera is then at b
+    A = pycolmap.Rotation3d(np.array([0.1, -0.2, 0.3]) / np.linalg.norm([0.1, -0.2, 0.3]) * 0.5)
+    A = A.matrix()
+    b = np.array([3.0, -1.0, 2.0])
+    world = pts @ A.T + b
+    cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(A.T), -A.T @ b)
+    planes = np.array([[*(A @ [0, 0, 1]), 0.0], [*(A @ [0, -1, 0]), 0.0]])
+    planes[0, 3] = -planes[0, :3] @ (A @ [0, 0, 5] + b)
+    planes[1, 3] = -planes[1, :3] @ (A @ [0, 1.5, 0] + b)
+    K = np.array([[60.0, 0, 40], [0, 60, 30], [0, 0, 1]])
+    n = real.plane_normal_map(world, truth, planes, cam_from_world, K, 80, 60, radius=3)
+    has = np.abs(n).sum(-1) > 0
+    assert 0.2 < has.mean() < 0.95
+    facing = {(0.0, 0.0, -1.0), (0.0, -1.0, 0.0)}  # wall at z = 5, ground below (y down)
+    got = {tuple(np.round(v, 6) + 0.0) for v in n[has]}
+    assert got == facing
+    # wall labels lie where the wall is: ray through the pixel meets z = 5 at x in [-2, 0]
+    v, u = np.nonzero(np.all(np.isclose(n, [0, 0, -1]), -1))
+    x = (u + 0.5 - 40) / 60 * 5
+    assert x.max() < 0 + 4 / 60 * 5 and x.min() > -2 - 4 / 60 * 5
+    # a grazing plane is left out
+    n2 = real.plane_normal_map(
+        world, truth, planes, cam_from_world, K, 80, 60, radius=3, max_incidence_deg=20
+    )
+    assert not np.all(np.isclose(n2, [0, -1, 0]), -1).any()  # the ground is seen > 20 deg
+    assert np.all(np.isclose(n2, [0, 0, -1]), -1).any()  # the wall, frontal, stays
+
+
+def test_merge_normal_labels_prefers_planes_and_drops_conflicts():
+    planes = np.zeros((1, 4, 3), np.float32)
+    lines = np.zeros((1, 4, 3), np.float32)
+    planes[0, 0] = [0, 0, -1]  # plane only
+    lines[0, 1] = [0, -1, 0]  # line only
+    planes[0, 2], lines[0, 2] = [0, 0, -1], [0, np.sin(0.1), -np.cos(0.1)]  # agree (5.7 deg)
+    planes[0, 3], lines[0, 3] = [0, 0, -1], [-1, 0, 0]  # disagree
+    m = real.merge_normal_labels(planes, lines)
+    np.testing.assert_array_equal(m[0, :3], [[0, 0, -1], [0, -1, 0], [0, 0, -1]])
+    assert not m[0, 3].any()

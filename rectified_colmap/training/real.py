@@ -6,11 +6,15 @@ A real sample has the pool format of :mod:`rectified_colmap.training.data` plus 
 - ``K`` (3, 3): its pinhole intrinsics after the crop (COLMAP pixel convention);
 - ``depth`` (h, w) float32: SPARSE z-depth, the z of the 3D points of a COLMAP model seen
   in the image (nearest point per pixel), 0 elsewhere (images without a model: all 0);
-- ``normals`` (h, w, 3) float32: camera-frame unit normals toward the camera where the
+- ``normals`` (h, w, 3) float32: camera-frame unit normals toward the camera, 0 elsewhere,
+  from two sources: planes fitted to the model's 3D points (:func:`fit_planes`, where the
+  image's points of one plane are dense, :func:`plane_normal_map`), and where the
   line-derived Manhattan frame is confident (its trust test,
   :func:`rectified_colmap.vp.fusion.manhattan_from_image`) and segments of two of its
   families are dense (:func:`rectified_colmap.vp.line_planes.line_support_patches`: a plane
-  containing lines of two vanishing points has the third axis as normal), 0 elsewhere;
+  containing lines of two vanishing points has the third axis as normal); plane fits win
+  where both exist, and a pixel where they disagree gets neither
+  (:func:`merge_normal_labels`);
 - ``sky`` (h, w) uint8: 1 sky, 0 not sky, 255 unknown (:mod:`rectified_colmap.training.sky`
   pseudo-labels; where they say sky, line-support normals are dropped; pixels with a 3D
   point or a remaining normal are not sky).
@@ -56,6 +60,10 @@ class RealItem:
     cam_from_world: pycolmap.Rigid3d | None = None
     horizon: np.ndarray | None = None
     """(3,) line a x + b y + c = 0 in stored-image pixels (0-based), if known."""
+    planes: np.ndarray | None = None
+    """(P, 4) world planes (n, d), n . X + d = 0, |n| = 1, fitted to the model's points."""
+    point_planes: np.ndarray | None = None
+    """(N,) int index into ``planes`` of each of ``points``, -1 on none."""
 
 
 def cover_crop_affine(width: int, height: int, out_w: int, out_h: int) -> np.ndarray:
@@ -157,6 +165,132 @@ def line_normal_map(
     return table[np.where(lab >= 0, lab, 6)], res.directions
 
 
+# -- normal labels from planes fitted to a model's 3D points --------------------------------
+def fit_planes(
+    points: np.ndarray,
+    threshold: float,
+    min_inliers: int = 40,
+    max_planes: int = 12,
+    hypotheses: int = 512,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sequential RANSAC planes of the world ``points`` (N, 3) -> (planes (P, 4) rows
+    (n, d) with n . X + d = 0 and |n| = 1, labels (N,) int plane index, -1 on none).
+
+    Each round scores ``hypotheses`` random point triples at once, refits the best by least
+    squares on its inliers (distance <= ``threshold``, twice) and removes them; it stops
+    when the best plane has fewer than ``min_inliers`` points or after ``max_planes``."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    labels = np.full(len(X), -1, int)
+    planes = []
+    free = np.arange(len(X))
+    while len(planes) < max_planes and len(free) >= max(3, min_inliers):
+        P = X[free]
+        tri = P[rng.integers(0, len(P), (hypotheses, 3))]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(n, axis=1)
+        ok = norm > 1e-12
+        if not ok.any():
+            break
+        n = n[ok] / norm[ok, None]
+        d = -(n * tri[ok, 0]).sum(1)
+        counts = (np.abs(P @ n.T + d) <= threshold).sum(0)
+        best = int(np.argmax(counts))
+        plane = np.append(n[best], d[best])
+        for _ in range(2):  # least-squares refit on the inliers
+            inl = np.abs(P @ plane[:3] + plane[3]) <= threshold
+            if inl.sum() < 3:
+                break
+            c = P[inl].mean(0)
+            normal = np.linalg.svd(P[inl] - c, full_matrices=False)[2][-1]
+            plane = np.append(normal, -normal @ c)
+        inl = np.abs(P @ plane[:3] + plane[3]) <= threshold
+        if inl.sum() < min_inliers:
+            break
+        labels[free[inl]] = len(planes)
+        planes.append(plane)
+        free = free[~inl]
+    return np.array(planes, np.float64).reshape(-1, 4), labels
+
+
+def plane_normal_map(
+    points: np.ndarray,
+    point_planes: np.ndarray,
+    planes: np.ndarray,
+    cam_from_world: pycolmap.Rigid3d,
+    K: np.ndarray,
+    out_w: int,
+    out_h: int,
+    radius: int = 10,
+    min_points: int = 3,
+    purity: float = 0.9,
+    max_incidence_deg: float = 80.0,
+) -> np.ndarray:
+    """Normal labels from fitted planes -> (out_h, out_w, 3) float32 camera-frame unit
+    normals toward the camera, 0 where none.
+
+    ``points`` (N, 3) are the world points the image observes, ``point_planes`` (N,) their
+    plane (-1: none), ``planes`` (P, 4) world (n, d). They are projected with the pinhole
+    ``K`` (COLMAP convention); a pixel gets plane p when the (2 radius + 1)^2 window around
+    it holds at least ``min_points`` projected points of p and they are at least ``purity``
+    of all points there (occluders, clutter and plane boundaries fail this), and its ray
+    meets the plane at most ``max_incidence_deg`` from the normal (grazing views are left
+    out)."""
+    normals = np.zeros((out_h, out_w, 3), np.float32)
+    if points is None or len(points) == 0 or len(planes) == 0:
+        return normals
+    R = cam_from_world.rotation.matrix()
+    X = np.asarray(points, np.float64) @ R.T + cam_from_world.translation
+    front = X[:, 2] > 1e-6
+    uv = X[front] @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    ok = (col >= 0) & (col < out_w) & (row >= 0) & (row < out_h)
+    lab = np.asarray(point_planes)[front][ok]
+    flat = row[ok] * out_w + col[ok]
+    k = 2 * radius + 1
+
+    def window_count(sel):
+        c = np.bincount(flat[sel], minlength=out_h * out_w).reshape(out_h, out_w)
+        return cv2.boxFilter(c.astype(np.float32), -1, (k, k), normalize=False)
+
+    total = window_count(np.ones(len(flat), bool))
+    present = np.unique(lab[lab >= 0])
+    if len(present) == 0:
+        return normals
+    counts = np.stack([window_count(lab == p) for p in present])
+    best = np.argmax(counts, 0)
+    cbest = np.take_along_axis(counts, best[None], 0)[0]
+    use = (cbest >= min_points) & (cbest >= purity * total - 1e-6)
+    # camera-frame normals facing the camera: n . C + d > 0 for the camera centre C
+    C = -R.T @ np.asarray(cam_from_world.translation, np.float64)
+    pl = planes[present]
+    n_cam = (pl[:, :3] @ R.T) * np.sign(pl[:, :3] @ C + pl[:, 3])[:, None]
+    rays = np.concatenate([pixel_centers(out_w, out_h), np.ones((out_h, out_w, 1))], -1)
+    rays = rays @ np.linalg.inv(K).T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    n_pix = n_cam[best]
+    facing = -(n_pix * rays).sum(-1) >= np.cos(np.radians(max_incidence_deg))
+    use &= facing
+    normals[use] = n_pix[use]
+    return normals
+
+
+def merge_normal_labels(
+    planes: np.ndarray, lines: np.ndarray, max_disagreement_deg: float = 20.0
+) -> np.ndarray:
+    """Plane-fit labels (metric, from the points) where they exist, line-support labels
+    elsewhere; pixels where both exist and disagree by more than ``max_disagreement_deg``
+    get none (one of them is wrong). Both (h, w, 3), 0 = no label."""
+    hp = np.abs(planes).sum(-1) > 0
+    hl = np.abs(lines).sum(-1) > 0
+    out = np.where(hp[..., None], planes, lines).astype(np.float32)
+    cos = (planes * lines).sum(-1)
+    out[hp & hl & (cos < np.cos(np.radians(max_disagreement_deg)))] = 0
+    return out
+
+
 def map_line(line: np.ndarray, a: np.ndarray) -> np.ndarray:
     """A line (a, b, c), a x + b y + c = 0 in 0-based source pixels, through the COLMAP
     affine ``a`` -> the same line in 0-based output pixels (0-based = COLMAP - 0.5)."""
@@ -193,6 +327,11 @@ def make_real_sample(
         normals, frame = line_normal_map(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), cam, xy, conf)
         if item.points is not None:
             depth = sparse_depth_map(item.points, item.cam_from_world, K, out_w, out_h)
+        if item.planes is not None and item.point_planes is not None:
+            fitted = plane_normal_map(
+                item.points, item.point_planes, item.planes, item.cam_from_world, K, out_w, out_h
+            )
+            normals = merge_normal_labels(fitted, normals)
     horizon = None if item.horizon is None else map_line(item.horizon, a)
     sky = np.full((out_h, out_w), UNKNOWN, np.uint8)
     if sky_fn is not None:
@@ -294,20 +433,88 @@ def camera_from_record(rec: dict, focal: float | None = None) -> pycolmap.Camera
     return cam_utils.make_camera("SIMPLE_PINHOLE", [float(f), *pp], w, h)
 
 
-def items_from_model(set_dir: Path) -> list[RealItem]:
-    """Items of a real-pool set with a COLMAP model (``colmap_sparse/``): the model's
-    camera, pose and the 3D points each image observes."""
+def densify_model(
+    set_dir: Path, work_dir: Path, max_num_features: int = 8192, max_side: int = 1600
+) -> Path:
+    """Re-triangulate a real-pool set's model with many more points -> the new model's folder.
+
+    The set's own model (``colmap_sparse/``) keeps only the points its SfM needed (Lund: ~220
+    per image, too sparse for plane labels). Here every image gets plain SIFT (up to
+    ``max_num_features`` at most ``max_side`` px, then in original pixels), all pairs are
+    ratio-matched and kept where consistent with the model's KNOWN poses (Sampson error),
+    and ``pycolmap.triangulate_points`` triangulates them into those poses
+    (:func:`rectified_colmap.eval.localize.build_reference`). Cameras and poses are the
+    model's, unchanged. Written under ``work_dir / set_dir.name``; reused when present."""
+    from ..config import ExtractConf
+    from ..eval.localize import build_reference
+    from ..io.hloc_h5 import rootsift_unit
+    from ..pipeline import plain_sift
+
+    out = Path(work_dir) / set_dir.name
+    model_dir = out / "sfm"
+    if (model_dir / "points3D.bin").is_file() or (model_dir / "points3D.txt").is_file():
+        return model_dir
     rec = pycolmap.Reconstruction(str(set_dir / "colmap_sparse"))
+    conf = ExtractConf.from_dict({"sift": {"max_num_features": max_num_features}})
+    names, cameras, poses, feats = [], {}, {}, {}
+    for im in sorted(rec.images.values(), key=lambda im: im.name):
+        gray = cv2.imread(str(set_dir / "images" / im.name), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            raise ValueError(f"{set_dir / 'images' / im.name}: cannot read image")
+        s = min(1.0, max_side / max(gray.shape))
+        small = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else gray
+        f = plain_sift(small, conf)
+        sx, sy = gray.shape[1] / small.shape[1], gray.shape[0] / small.shape[0]
+        names.append(im.name)
+        cameras[im.name] = rec.cameras[im.camera_id]
+        poses[im.name] = im.cam_from_world()
+        feats[im.name] = {
+            "keypoints": f.keypoints * np.array([sx, sy]),
+            "descriptors": rootsift_unit(f.descriptors).T,
+        }
+    build_reference(names, cameras, poses, feats, out, image_dir=set_dir / "images")
+    return model_dir
+
+
+PLANE_THRESHOLD = 0.01
+"""Plane inlier distance as a fraction of the model's median point depth (SfM points of a
+facade scatter ~0.2-0.5 % of their depth; 1 % keeps shallow reliefs on their wall)."""
+
+
+def items_from_model(
+    set_dir: Path, fit: bool = True, model_dir: Path | None = None
+) -> list[RealItem]:
+    """Items of a real-pool set with a COLMAP model (``colmap_sparse/``, or ``model_dir``,
+    e.g. from :func:`densify_model`): the model's camera, pose and the 3D points each image
+    observes; with ``fit``, the model's planes (:func:`fit_planes`, inlier distance
+    :data:`PLANE_THRESHOLD` x the median depth of the observations) and each observed
+    point's plane."""
+    rec = pycolmap.Reconstruction(str(model_dir or set_dir / "colmap_sparse"))
+    ids = np.array(sorted(rec.points3D))
+    xyz = np.array([rec.points3D[i].xyz for i in ids]).reshape(-1, 3)
+    index = {int(i): k for k, i in enumerate(ids)}
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    seen = {
+        im.image_id: np.array([index[p.point3D_id] for p in im.points2D if p.has_point3D()], int)
+        for im in images
+    }
+    planes = labels = None
+    if fit and len(xyz):
+        depths = np.concatenate(
+            [(im.cam_from_world() * xyz[seen[im.image_id]])[:, 2] for im in images]
+        )
+        planes, labels = fit_planes(xyz, PLANE_THRESHOLD * float(np.median(depths)))
     items = []
-    for image in sorted(rec.images.values(), key=lambda im: im.name):
-        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
-        pts = np.array([rec.points3D[i].xyz for i in ids]) if ids else np.zeros((0, 3))
+    for im in images:
+        k = seen[im.image_id]
         items.append(
             RealItem(
-                set_dir / "images" / image.name,
-                rec.cameras[image.camera_id],
-                pts,
-                image.cam_from_world(),
+                set_dir / "images" / im.name,
+                rec.cameras[im.camera_id],
+                xyz[k],
+                im.cam_from_world(),
+                planes=planes,
+                point_planes=None if labels is None else labels[k],
             )
         )
     return items
@@ -318,7 +525,7 @@ PERMISSIVE_SMALL_GROUPS = ("gluestick_", "lightglue_", "roma_", "dedode_", "metr
 ETH3D terrace pair (CC BY-NC-SA at its source) is left out."""
 
 
-def real_pool_items(root: str | Path) -> list[RealItem]:
+def real_pool_items(root: str | Path, dense_dir: str | Path | None = None) -> list[RealItem]:
     """The real-pool photos that may train the shipped network, with what is known of them.
 
     - opensfm-lund, opensfm-berlin (BSD-2), sceaux-castle (terms unstated; named in the
@@ -331,11 +538,13 @@ def real_pool_items(root: str | Path) -> list[RealItem]:
     - phototourism-samples (Apache-2.0), small-groups' permissive items: no focal -> sky
       labels only.
     Left out: sacre-coeur (the hloc evaluation images), british-museum, nle-tower,
-    kitti-demo (non-commercial terms)."""
+    kitti-demo (non-commercial terms). With ``dense_dir``, the three models are
+    re-triangulated there first (:func:`densify_model`) and their points come from it."""
     root = Path(root)
     items: list[RealItem] = []
     for name in ("opensfm-lund", "opensfm-berlin", "sceaux-castle"):
-        items += items_from_model(root / name)
+        model = None if dense_dir is None else densify_model(root / name, Path(dense_dir))
+        items += items_from_model(root / name, model_dir=model)
     for name in ("yorkurban", "yorkurban-indoor"):
         recs = json.loads((root / name / "cameras.json").read_text())
         gt = json.loads((root / name / "gt" / "gt_vps.json").read_text())["images"]
