@@ -6,9 +6,7 @@
 One compact .npz per photo (rectified_colmap.training.real: the photo at 320x240, sparse
 SfM depth, normal labels from planes fitted to the SfM points and from line support where
 the Manhattan frame passes its trust test, sky pseudo-labels); which sets and which split:
-``real.real_pool_items``. With ``--dense_dir``, the sets' models are first re-triangulated
-there with many more points (``real.densify_model``; minutes, reused). See
-docs/training.md.
+``real.real_pool_items``. See docs/training.md.
 """
 
 from __future__ import annotations
@@ -52,19 +50,13 @@ def main(argv=None) -> int:
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--processes", type=int, default=2)
-    p.add_argument(
-        "--dense_dir",
-        type=Path,
-        default=None,
-        help="re-triangulate the sets' COLMAP models here first (denser points and planes)",
-    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if not args.data.is_dir():
         logger.error("%s: no such folder (the real-pool data set)", args.data)
         return 2
     args.output.mkdir(parents=True, exist_ok=True)
-    items = real_pool_items(args.data, args.dense_dir)
+    items = real_pool_items(args.data)
     jobs = [
         (
             it,

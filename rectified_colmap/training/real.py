@@ -433,63 +433,17 @@ def camera_from_record(rec: dict, focal: float | None = None) -> pycolmap.Camera
     return cam_utils.make_camera("SIMPLE_PINHOLE", [float(f), *pp], w, h)
 
 
-def densify_model(
-    set_dir: Path, work_dir: Path, max_num_features: int = 8192, max_side: int = 1600
-) -> Path:
-    """Re-triangulate a real-pool set's model with many more points -> the new model's folder.
-
-    The set's own model (``colmap_sparse/``) keeps only the points its SfM needed (Lund: ~220
-    per image, too sparse for plane labels). Here every image gets plain SIFT (up to
-    ``max_num_features`` at most ``max_side`` px, then in original pixels), all pairs are
-    ratio-matched and kept where consistent with the model's KNOWN poses (Sampson error),
-    and ``pycolmap.triangulate_points`` triangulates them into those poses
-    (:func:`rectified_colmap.eval.localize.build_reference`). Cameras and poses are the
-    model's, unchanged. Written under ``work_dir / set_dir.name``; reused when present."""
-    from ..config import ExtractConf
-    from ..eval.localize import build_reference
-    from ..io.hloc_h5 import rootsift_unit
-    from ..pipeline import plain_sift
-
-    out = Path(work_dir) / set_dir.name
-    model_dir = out / "sfm"
-    if (model_dir / "points3D.bin").is_file() or (model_dir / "points3D.txt").is_file():
-        return model_dir
-    rec = pycolmap.Reconstruction(str(set_dir / "colmap_sparse"))
-    conf = ExtractConf.from_dict({"sift": {"max_num_features": max_num_features}})
-    names, cameras, poses, feats = [], {}, {}, {}
-    for im in sorted(rec.images.values(), key=lambda im: im.name):
-        gray = cv2.imread(str(set_dir / "images" / im.name), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            raise ValueError(f"{set_dir / 'images' / im.name}: cannot read image")
-        s = min(1.0, max_side / max(gray.shape))
-        small = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else gray
-        f = plain_sift(small, conf)
-        sx, sy = gray.shape[1] / small.shape[1], gray.shape[0] / small.shape[0]
-        names.append(im.name)
-        cameras[im.name] = rec.cameras[im.camera_id]
-        poses[im.name] = im.cam_from_world()
-        feats[im.name] = {
-            "keypoints": f.keypoints * np.array([sx, sy]),
-            "descriptors": rootsift_unit(f.descriptors).T,
-        }
-    build_reference(names, cameras, poses, feats, out, image_dir=set_dir / "images")
-    return model_dir
-
-
 PLANE_THRESHOLD = 0.01
 """Plane inlier distance as a fraction of the model's median point depth (SfM points of a
 facade scatter ~0.2-0.5 % of their depth; 1 % keeps shallow reliefs on their wall)."""
 
 
-def items_from_model(
-    set_dir: Path, fit: bool = True, model_dir: Path | None = None
-) -> list[RealItem]:
-    """Items of a real-pool set with a COLMAP model (``colmap_sparse/``, or ``model_dir``,
-    e.g. from :func:`densify_model`): the model's camera, pose and the 3D points each image
-    observes; with ``fit``, the model's planes (:func:`fit_planes`, inlier distance
-    :data:`PLANE_THRESHOLD` x the median depth of the observations) and each observed
-    point's plane."""
-    rec = pycolmap.Reconstruction(str(model_dir or set_dir / "colmap_sparse"))
+def items_from_model(set_dir: Path, fit: bool = True) -> list[RealItem]:
+    """Items of a real-pool set with a COLMAP model (``colmap_sparse/``): the model's
+    camera, pose and the 3D points each image observes; with ``fit``, the model's planes
+    (:func:`fit_planes`, inlier distance :data:`PLANE_THRESHOLD` x the median depth of the
+    observations) and each observed point's plane."""
+    rec = pycolmap.Reconstruction(str(set_dir / "colmap_sparse"))
     ids = np.array(sorted(rec.points3D))
     xyz = np.array([rec.points3D[i].xyz for i in ids]).reshape(-1, 3)
     index = {int(i): k for k, i in enumerate(ids)}
@@ -525,7 +479,7 @@ PERMISSIVE_SMALL_GROUPS = ("gluestick_", "lightglue_", "roma_", "dedode_", "metr
 ETH3D terrace pair (CC BY-NC-SA at its source) is left out."""
 
 
-def real_pool_items(root: str | Path, dense_dir: str | Path | None = None) -> list[RealItem]:
+def real_pool_items(root: str | Path) -> list[RealItem]:
     """The real-pool photos that may train the shipped network, with what is known of them.
 
     - opensfm-lund, opensfm-berlin (BSD-2), sceaux-castle (terms unstated; named in the
@@ -538,13 +492,11 @@ def real_pool_items(root: str | Path, dense_dir: str | Path | None = None) -> li
     - phototourism-samples (Apache-2.0), small-groups' permissive items: no focal -> sky
       labels only.
     Left out: sacre-coeur (the hloc evaluation images), british-museum, nle-tower,
-    kitti-demo (non-commercial terms). With ``dense_dir``, the three models are
-    re-triangulated there first (:func:`densify_model`) and their points come from it."""
+    kitti-demo (non-commercial terms)."""
     root = Path(root)
     items: list[RealItem] = []
     for name in ("opensfm-lund", "opensfm-berlin", "sceaux-castle"):
-        model = None if dense_dir is None else densify_model(root / name, Path(dense_dir))
-        items += items_from_model(root / name, model_dir=model)
+        items += items_from_model(root / name)
     for name in ("yorkurban", "yorkurban-indoor"):
         recs = json.loads((root / name / "cameras.json").read_text())
         gt = json.loads((root / name / "gt" / "gt_vps.json").read_text())["images"]
