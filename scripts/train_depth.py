@@ -193,6 +193,8 @@ def main(argv=None) -> int:
         encoder_weights=args.encoder_weights,
     )
     if args.init is not None and args.init.suffix == ".onnx":
+        if not args.freeze_bn:  # its BatchNorm is folded: batch statistics would undo it
+            raise SystemExit(f"{args.init}: --init from an ONNX file needs --freeze_bn")
         model = load_onnx_weights(args.init, width=args.decoder_width)
         if model.has_sky != args.sky:
             raise SystemExit(f"{args.init}: sky head {model.has_sky}, --sky {args.sky}")
