@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Train the embedded depth network (v3: renders + real photos + sky head) on one GPU machine
 # in ~8 minutes of wall time. Run from the repository root; needs, in outputs/carry/ (made
-# here, see docs/training.md): effnet_lite0_encoder_fp16.pt (ImageNet encoder),
+# here by scripts/prepare_gpu_carry.py, see docs/training.md): effnet_lite0_encoder_fp16.pt (ImageNet encoder),
 # real_pool/ (scripts/build_real_pool.py), textures/ (facade photos); and, where pycolmap
 # is missing, its wheel in .whl/. Writes to $OUT/run (default /tmp/rectsift_gpu). Extra
 # arguments go to scripts/train_depth.py (later ones win, e.g. --real_frac 0.5).
