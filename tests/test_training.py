@@ -316,3 +316,36 @@ def test_load_onnx_weights_reproduces_the_exported_network(tmp_path):
     after = {k: v for k, v in back.state_dict().items() if "running" in k}
     assert all(torch.equal(before[k], after[k]) for k in before)
     assert not torch.equal(w0, back.head[0].weight)  # the rest did train
+
+
+def test_train_depth_script_fine_tunes_an_exported_network(tmp_path):
+    """scripts/train_depth.py from an exported ONNX network with BatchNorm frozen: a few
+    steps run, the weights and a new ONNX file are written, the BatchNorm statistics are
+    those of the file (identity), and without --freeze_bn the ONNX start is refused."""
+    pytest.importorskip("onnx")
+    from tests.scripts_util import load_script
+
+    from rectified_colmap.depth.contract import ModelSpec
+    from rectified_colmap.training.export import export_onnx, model_spec
+    from rectified_colmap.training.model import load_checkpoint
+
+    torch.manual_seed(0)
+    start = tmp_path / "start.onnx"
+    export_onnx(DepthNet(width=16, sky=True).eval(), start, model_spec(), 64, 96, verify=False)
+    script = load_script("train_depth")
+    args = [
+        "--out", str(tmp_path / "run"), "--steps", "3", "--batch", "2", "--height", "64",
+        "--width", "96", "--pool_size", "2", "--pool_dir", str(tmp_path / "pool"),
+        "--render_width", "96", "--render_height", "64", "--render_processes", "1",
+        "--decoder_width", "16", "--sky", "--no_pretrained", "--init", str(start),
+        "--threads", "1", "--workers", "0", "--log_every", "1",
+    ]  # fmt: skip
+    with pytest.raises(SystemExit, match="needs --freeze_bn"):
+        script.main(args)
+    assert script.main([*args, "--freeze_bn"]) == 0
+    net = load_checkpoint(tmp_path / "run" / "weights_fp16.pt")
+    bn = net.encoder._blocks[3]._bn1
+    assert torch.all(bn.running_mean == 0) and torch.all(bn.running_var == 1 - bn.eps)
+    assert ModelSpec.from_onnx(tmp_path / "run" / "rectsift-depth-lite0.onnx").output == "depth"
+    last = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    assert last["step"] == 3

@@ -239,17 +239,20 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> DepthNet:
 
 def _onnx_conv_params(path: Path) -> list[tuple[str, object, object]]:
     """(weight name, weight, bias or None) of each Conv node of an exported DepthNet, in
-    graph order, as float32 numpy arrays (fp16-stored weights are read through their Cast)."""
+    graph order, as float32 numpy arrays."""
     import onnx
     from onnx import numpy_helper
 
     graph = onnx.load(str(path)).graph
     init = {t.name: t for t in graph.initializer}
-    cast = {n.output[0]: n.input[0] for n in graph.node if n.op_type == "Cast"}
+    # fp16-stored weights are read through a Cast; identical tensors (e.g. zero biases)
+    # are stored once and shared through Identity nodes
+    alias = {n.output[0]: n.input[0] for n in graph.node if n.op_type in ("Cast", "Identity")}
 
     def value(name):
-        src = cast.get(name, name)
-        return None if src not in init else numpy_helper.to_array(init[src]).astype("float32")
+        while name not in init and name in alias:
+            name = alias[name]
+        return None if name not in init else numpy_helper.to_array(init[name]).astype("float32")
 
     out = []
     for n in graph.node:
