@@ -18,6 +18,15 @@ Ground-truth frames (``--york REAL_POOL``): the same per image against York Urba
 hand-labelled Manhattan frames, ECCV08 test split (never used in training).
 Timing: seconds per 1536x1024 image through OnnxDepthSource (1 and 2 threads).
 
+Plane-fit normals (``--planes REAL_POOL``): on the held-out multi-view sets of the real
+pool (:data:`PLANE_EVAL_SETS`, never trained on), planes fitted to each set's SfM points give
+exact normals where one plane's points are dense
+(:func:`rectified_colmap.training.real.plane_normal_map_camera`); per image, the pipeline's
+normals of the predicted depth (as extraction computes them) are scored there:
+``plane_err`` median angle (deg, sign-free), ``plane_within15`` fraction within 15 deg,
+``plane_coverage`` fraction of the labelled pixels that got a normal. Unlike the line-frame
+measures below, these labels also cover oblique walls without straight lines.
+
 Real photos (``--real SCENE_DIR ...``, COLMAP scenes with ``images/`` and ``sparse/``, e.g.
 Strecha): no true depth, but the Manhattan frame from line segments
 (:func:`rectified_colmap.vp.manhattan_from_image`, consistent across Strecha images to
@@ -188,6 +197,72 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
     return _summary(rows, "real")
 
 
+PLANE_EVAL_SETS = ("sacre-coeur", "british-museum", "nle-tower")
+"""Real-pool sets with COLMAP models that never train a shipped network (sacre-coeur: the
+hloc evaluation photos; british-museum, nle-tower: non-commercial terms)."""
+
+
+def evaluate_planes(depth_for, root: str | Path, sets=PLANE_EVAL_SETS, min_labelled=0.005):
+    """Normals of a depth source vs plane-fit normals of held-out multi-view sets (module
+    docstring); images with less than ``min_labelled`` of the grid labelled are skipped."""
+    import cv2
+
+    from ..config import ExtractConf
+    from ..disparity import resolve_disparity
+    from ..geometry import scaled_size
+    from ..normals import depth_to_normals
+    from .real import items_from_model, plane_normal_map_camera
+
+    conf = ExtractConf()
+    rows, pooled = [], []
+    for name in sets:
+        for it in items_from_model(Path(root) / name):
+            bgr = cv2.imread(str(it.path), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ValueError(f"{it.path}: cannot read image")
+            cam = it.camera
+            dm = depth_for(it.path, np.ascontiguousarray(bgr[..., ::-1]))
+            n = depth_to_normals(resolve_disparity(dm, cam, conf), cam, conf.normals)
+            h, w = n.shape[:2]
+            if (w, h) != scaled_size(cam.width, cam.height, max(w, h)):
+                raise ValueError(f"{it.path}: normals grid {w}x{h} does not cover the image")
+            gt = plane_normal_map_camera(
+                it.points, it.point_planes, it.planes, it.cam_from_world, cam, w, h
+            )
+            lab = np.abs(gt).sum(-1) > 0
+            if lab.mean() < min_labelled:
+                continue
+            has = lab & np.isfinite(n).all(-1)
+            cos = np.abs((n[has] * gt[has]).sum(-1)).clip(0, 1)
+            err = np.degrees(np.arccos(cos))
+            pooled.append(err)
+            rows.append(
+                {
+                    "image": f"{name}/{it.path.name}",
+                    "labelled": float(lab.mean()),
+                    "plane_coverage": float(has.sum() / lab.sum()),
+                    "plane_err": float(np.median(err)) if err.size else 90.0,
+                    "plane_within15": float(np.mean(err <= 15)) if err.size else 0.0,
+                }
+            )
+            logger.info(
+                "%s: %s",
+                rows[-1]["image"],
+                {k: round(v, 3) for k, v in rows[-1].items() if k != "image"},
+            )
+    if not rows:
+        raise ValueError(f"{root}: no held-out image with plane labels in {list(sets)}")
+    allerr = np.concatenate(pooled)
+    return {
+        "plane_images": len(rows),
+        "plane_err_median": float(np.median([r["plane_err"] for r in rows])),
+        "plane_err_pooled": float(np.median(allerr)) if allerr.size else 90.0,
+        "plane_within15_pooled": float(np.mean(allerr <= 15)) if allerr.size else 0.0,
+        "plane_coverage_median": float(np.median([r["plane_coverage"] for r in rows])),
+        "rows": rows,
+    }
+
+
 def york_test_items(root: str | Path, sets=("yorkurban",)) -> list[tuple[Path, object, np.ndarray]]:
     """York Urban images of the ECCV08 TEST split (never trained on) -> (path, camera,
     ground-truth Manhattan frame (3, 3), rows = axes in the camera frame, y down)."""
@@ -268,6 +343,12 @@ def main(argv=None) -> int:
         default=None,
         help="real-pool folder: score against York Urban's ground-truth frames (test split)",
     )
+    p.add_argument(
+        "--planes",
+        type=Path,
+        default=None,
+        help="real-pool folder: score against plane-fit normals of its held-out SfM sets",
+    )
     p.add_argument("--output", type=Path, default=None, help="JSON of the results")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -294,6 +375,15 @@ def main(argv=None) -> int:
         york = evaluate_gt_frames(lambda path, rgb: src(rgb), york_test_items(args.york))
         york.pop("rows")
         res.update(york)
+    if args.planes:
+        from ..depth.onnx import OnnxDepthSource
+
+        src = OnnxDepthSource(
+            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
+        )
+        planes = evaluate_planes(lambda path, rgb: src(rgb), args.planes)
+        planes.pop("rows")
+        res.update(planes)
     if args.timing:
         for t in (1, 2):
             res[f"time_1536x1024_{t}thread_s"] = time_inference(args.model, t)

@@ -222,57 +222,107 @@ def plane_normal_map(
     K: np.ndarray,
     out_w: int,
     out_h: int,
+    **kwargs,
+) -> np.ndarray:
+    """Normal labels from fitted planes on a pinhole view -> (out_h, out_w, 3) float32
+    camera-frame unit normals toward the camera, 0 where none.
+
+    ``points`` (N, 3) are the world points the image observes, ``point_planes`` (N,) their
+    plane (-1: none), ``planes`` (P, 4) world (n, d); they are projected with ``K`` (COLMAP
+    convention). ``kwargs``: the label rule of :func:`plane_normals_on_grid`."""
+    X = _to_camera(points, cam_from_world)
+    uv = X @ K.T
+    uv = uv[:, :2] / np.where(X[:, 2:] > 1e-6, uv[:, 2:], np.nan)
+    rays = np.concatenate([pixel_centers(out_w, out_h), np.ones((out_h, out_w, 1))], -1)
+    rays = rays @ np.linalg.inv(K).T
+    return plane_normals_on_grid(
+        uv, point_planes, _planes_facing(planes, cam_from_world), rays, **kwargs
+    )
+
+
+def plane_normal_map_camera(
+    points: np.ndarray,
+    point_planes: np.ndarray,
+    planes: np.ndarray,
+    cam_from_world: pycolmap.Rigid3d,
+    camera: pycolmap.Camera,
+    width: int,
+    height: int,
+    **kwargs,
+) -> np.ndarray:
+    """:func:`plane_normal_map` on a ``width`` x ``height`` grid covering the whole image of
+    any COLMAP ``camera`` (distortion included): the grid of ``normals.depth_to_normals``,
+    so that a depth network's normals can be scored against the plane labels."""
+    X = _to_camera(points, cam_from_world)
+    front = X[:, 2] > 1e-6
+    uv = np.full((len(X), 2), np.nan)
+    if front.any():
+        uv[front] = camera.img_from_cam(X[front]) * np.array(
+            [width / camera.width, height / camera.height]
+        )
+    rays = cam_utils.grid_rays(camera, width, height)
+    return plane_normals_on_grid(
+        uv, point_planes, _planes_facing(planes, cam_from_world), rays, **kwargs
+    )
+
+
+def _to_camera(points: np.ndarray, cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    return X @ cam_from_world.rotation.matrix().T + cam_from_world.translation
+
+
+def _planes_facing(planes: np.ndarray, cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
+    """(P, 3) camera-frame unit normals of world planes (n, d), oriented toward the camera
+    centre C: n . C + d > 0."""
+    R = cam_from_world.rotation.matrix()
+    C = -R.T @ np.asarray(cam_from_world.translation, np.float64)
+    planes = np.asarray(planes, np.float64).reshape(-1, 4)
+    sign = np.where(planes[:, :3] @ C + planes[:, 3] >= 0, 1.0, -1.0)
+    return (planes[:, :3] @ R.T) * sign[:, None]
+
+
+def plane_normals_on_grid(
+    uv: np.ndarray,
+    point_planes: np.ndarray,
+    plane_normals: np.ndarray,
+    rays: np.ndarray,
     radius: int = 10,
     min_points: int = 3,
     purity: float = 0.9,
     max_incidence_deg: float = 80.0,
 ) -> np.ndarray:
-    """Normal labels from fitted planes -> (out_h, out_w, 3) float32 camera-frame unit
-    normals toward the camera, 0 where none.
-
-    ``points`` (N, 3) are the world points the image observes, ``point_planes`` (N,) their
-    plane (-1: none), ``planes`` (P, 4) world (n, d). They are projected with the pinhole
-    ``K`` (COLMAP convention); a pixel gets plane p when the (2 radius + 1)^2 window around
-    it holds at least ``min_points`` projected points of p and they are at least ``purity``
-    of all points there (occluders, clutter and plane boundaries fail this), and its ray
-    meets the plane at most ``max_incidence_deg`` from the normal (grazing views are left
-    out)."""
-    normals = np.zeros((out_h, out_w, 3), np.float32)
-    if points is None or len(points) == 0 or len(planes) == 0:
-        return normals
-    R = cam_from_world.rotation.matrix()
-    X = np.asarray(points, np.float64) @ R.T + cam_from_world.translation
-    front = X[:, 2] > 1e-6
-    uv = X[front] @ K.T
-    uv = uv[:, :2] / uv[:, 2:]
-    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-    ok = (col >= 0) & (col < out_w) & (row >= 0) & (row < out_h)
-    lab = np.asarray(point_planes)[front][ok]
-    flat = row[ok] * out_w + col[ok]
-    k = 2 * radius + 1
-
-    def window_count(sel):
-        c = np.bincount(flat[sel], minlength=out_h * out_w).reshape(out_h, out_w)
-        return cv2.boxFilter(c.astype(np.float32), -1, (k, k), normalize=False)
-
-    total = window_count(np.ones(len(flat), bool))
+    """The label rule: ``uv`` (N, 2) COLMAP coordinates on the (h, w) grid of ``rays``
+    (h, w, 3) of the observed points (NaN: not seen), ``point_planes`` (N,) their plane
+    (-1: none), ``plane_normals`` (P, 3) camera-frame normals facing the camera. A pixel
+    gets plane p when the (2 radius + 1)^2 window around it holds at least ``min_points``
+    points of p and they are at least ``purity`` of all points there (occluders, clutter and
+    plane boundaries fail this), and its ray meets the plane at most ``max_incidence_deg``
+    from the normal (grazing views are left out). -> (h, w, 3) float32, 0 where none."""
+    h, w = rays.shape[:2]
+    normals = np.zeros((h, w, 3), np.float32)
+    ok = np.isfinite(uv).all(1)
+    col = np.floor(np.where(ok, uv[:, 0], -1)).astype(int)
+    row = np.floor(np.where(ok, uv[:, 1], -1)).astype(int)
+    ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    lab = np.asarray(point_planes)[ok]
+    flat = row[ok] * w + col[ok]
     present = np.unique(lab[lab >= 0])
     if len(present) == 0:
         return normals
+    k = 2 * radius + 1
+
+    def window_count(sel):
+        c = np.bincount(flat[sel], minlength=h * w).reshape(h, w)
+        return cv2.boxFilter(c.astype(np.float32), -1, (k, k), normalize=False)
+
+    total = window_count(np.ones(len(flat), bool))
     counts = np.stack([window_count(lab == p) for p in present])
     best = np.argmax(counts, 0)
     cbest = np.take_along_axis(counts, best[None], 0)[0]
     use = (cbest >= min_points) & (cbest >= purity * total - 1e-6)
-    # camera-frame normals facing the camera: n . C + d > 0 for the camera centre C
-    C = -R.T @ np.asarray(cam_from_world.translation, np.float64)
-    pl = planes[present]
-    n_cam = (pl[:, :3] @ R.T) * np.sign(pl[:, :3] @ C + pl[:, 3])[:, None]
-    rays = np.concatenate([pixel_centers(out_w, out_h), np.ones((out_h, out_w, 1))], -1)
-    rays = rays @ np.linalg.inv(K).T
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    n_pix = n_cam[best]
-    facing = -(n_pix * rays).sum(-1) >= np.cos(np.radians(max_incidence_deg))
-    use &= facing
+    n_pix = np.asarray(plane_normals, np.float64)[present][best]
+    unit = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    use &= -(n_pix * unit).sum(-1) >= np.cos(np.radians(max_incidence_deg))
     normals[use] = n_pix[use]
     return normals
 
