@@ -112,13 +112,22 @@ def parse_args(argv=None):
         type=Path,
         default=None,
         help="start from the weights of this checkpoint, or of an exported .onnx (a new "
-        "optimizer and schedule: fine-tuning; from .onnx, BatchNorm is folded: use --freeze_bn)",
+        "optimizer and schedule: fine-tuning; from .onnx the folded BatchNorm is "
+        "recalibrated on --recalibrate_items training items unless --freeze_bn)",
     )
     p.add_argument(
         "--freeze_bn",
         action="store_true",
-        help="BatchNorm in eval mode with fixed parameters (small batches, --init X.onnx)",
+        help="BatchNorm in eval mode with fixed parameters",
     )
+    p.add_argument("--recalibrate_items", type=int, default=64)
+    p.add_argument(
+        "--probe_every",
+        type=int,
+        default=100,
+        help="steps between losses on a fixed probe set (eval mode, same mix; 0: never)",
+    )
+    p.add_argument("--probe_items", type=int, default=32)
     return p.parse_args(argv)
 
 
@@ -134,7 +143,12 @@ def main(argv=None) -> int:
 
     from rectified_colmap.training.data import PoolDataset, render_pool
     from rectified_colmap.training.export import export_onnx, model_spec
-    from rectified_colmap.training.model import build_model, load_onnx_weights
+    from rectified_colmap.training.losses import total_loss
+    from rectified_colmap.training.model import (
+        build_model,
+        load_onnx_weights,
+        recalibrate_batchnorm,
+    )
     from rectified_colmap.training.train import (
         lr_factor,
         make_optimizer,
@@ -193,11 +207,13 @@ def main(argv=None) -> int:
         encoder_weights=args.encoder_weights,
     )
     if args.init is not None and args.init.suffix == ".onnx":
-        if not args.freeze_bn:  # its BatchNorm is folded: batch statistics would undo it
-            raise SystemExit(f"{args.init}: --init from an ONNX file needs --freeze_bn")
         model = load_onnx_weights(args.init, width=args.decoder_width)
         if model.has_sky != args.sky:
             raise SystemExit(f"{args.init}: sky head {model.has_sky}, --sky {args.sky}")
+        if not args.freeze_bn:  # folded BatchNorm: re-expressed around real statistics
+            n = min(args.recalibrate_items, len(ds))
+            recalibrate_batchnorm(model, torch.stack([ds[i]["image"] for i in range(n)]))
+            logger.info("BatchNorm recalibrated on %d training items", n)
     elif args.init is not None:
         ck = torch.load(args.init, map_location="cpu", weights_only=False)
         model.load_state_dict(ck["model"])
@@ -252,6 +268,41 @@ def main(argv=None) -> int:
         )
 
     weights = {"w_lines": args.w_lines, "w_sky": args.w_sky, "w_axis": args.w_axis}
+    probe = None
+    if args.probe_every > 0 and args.probe_items > 0:
+        # fixed items (their own seed), same pool and mix: a loss trend free of batch noise
+        pds = PoolDataset(
+            [] if args.stream else paths,
+            args.height,
+            args.width,
+            seed=args.seed + 7919,
+            length=args.probe_items,
+            real_paths=real_paths,
+            real_frac=args.real_frac,
+            pool_dir=args.pool_dir if args.stream else None,
+        )
+        probe = [pds[i] for i in range(args.probe_items)]
+
+    @torch.no_grad()
+    def probe_loss() -> dict:
+        model.eval()
+        tot = {}
+        for i in range(0, len(probe), args.batch):
+            items = probe[i : i + args.batch]
+            b = {k: torch.stack([it[k] for it in items]).to(device) for k in items[0]}
+            pred_log, sky_logit = model.forward_train(b["image"])
+            loss, parts = total_loss(pred_log.float(), b, sky_logit=sky_logit, **weights)
+            for k, v in {"loss": float(loss), **parts}.items():
+                tot[k] = tot.get(k, 0.0) + v * len(items)
+        return {k: v / len(probe) for k, v in tot.items()}
+
+    def log_probe(step):
+        if probe is not None:
+            logger.info(
+                "probe step %d  %s",
+                step,
+                "  ".join(f"{k} {v:.4f}" for k, v in probe_loss().items()),
+            )
 
     def save_weights(step):
         """Weights only, atomically: parameters in fp16 (half the size; load_checkpoint
@@ -272,6 +323,7 @@ def main(argv=None) -> int:
         )
         tmp.replace(args.out / "weights_fp16.pt")
 
+    log_probe(start)
     t_train = time.time()
     t_export = t_train
     step = start
@@ -301,6 +353,8 @@ def main(argv=None) -> int:
                 progress,
             )
             running = {}
+        if probe is not None and step % args.probe_every == 0:
+            log_probe(step)
         if step % args.ckpt_every == 0:
             save_checkpoint(args.out / "last.pt", model, opt, step, args.decoder_width)
             save_weights(step)
@@ -310,6 +364,8 @@ def main(argv=None) -> int:
     if background is not None:
         background.terminate()
         background.join()
+    if probe is not None and step % args.probe_every:
+        log_probe(step)
     save_checkpoint(args.out / "last.pt", model.to("cpu"), opt, step, args.decoder_width)
     save_weights(step)
     try:

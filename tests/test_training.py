@@ -318,10 +318,35 @@ def test_load_onnx_weights_reproduces_the_exported_network(tmp_path):
     assert not torch.equal(w0, back.head[0].weight)  # the rest did train
 
 
+def test_recalibrate_batchnorm_keeps_the_function():
+    """After load_onnx_weights (identity BatchNorms), recalibration leaves the eval-mode
+    function unchanged, and in training mode on the calibration batch the batch statistics
+    are the running ones: the same output again."""
+    from rectified_colmap.training.model import recalibrate_batchnorm
+
+    torch.manual_seed(1)
+    net = DepthNet(width=16, sky=True)
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+    x = torch.randn(6, 3, 64, 96)
+    with torch.no_grad():
+        before = net.eval()(x)
+        recalibrate_batchnorm(net, x, chunk=6)
+        after = net.eval()(x)
+        in_training = net.train()(x)
+    torch.testing.assert_close(after, before, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(in_training, before, rtol=1e-4, atol=1e-6)
+    bn = net.encoder._blocks[2]._bn1
+    assert not torch.allclose(bn.running_var, torch.ones_like(bn.running_var))
+
+
 def test_train_depth_script_fine_tunes_an_exported_network(tmp_path):
-    """scripts/train_depth.py from an exported ONNX network with BatchNorm frozen: a few
-    steps run, the weights and a new ONNX file are written, the BatchNorm statistics are
-    those of the file (identity), and without --freeze_bn the ONNX start is refused."""
+    """scripts/train_depth.py from an exported ONNX network: a few steps run with
+    BatchNorm recalibrated (or frozen: then its statistics stay those of the file), the
+    weights and a new ONNX file are written."""
     pytest.importorskip("onnx")
     from tests.scripts_util import load_script
 
@@ -334,18 +359,20 @@ def test_train_depth_script_fine_tunes_an_exported_network(tmp_path):
     export_onnx(DepthNet(width=16, sky=True).eval(), start, model_spec(), 64, 96, verify=False)
     script = load_script("train_depth")
     args = [
-        "--out", str(tmp_path / "run"), "--steps", "3", "--batch", "2", "--height", "64",
+        "--steps", "3", "--batch", "2", "--height", "64",
         "--width", "96", "--pool_size", "2", "--pool_dir", str(tmp_path / "pool"),
         "--render_width", "96", "--render_height", "64", "--render_processes", "1",
         "--decoder_width", "16", "--sky", "--no_pretrained", "--init", str(start),
-        "--threads", "1", "--workers", "0", "--log_every", "1",
+        "--threads", "1", "--workers", "0", "--log_every", "1", "--recalibrate_items", "4",
+        "--probe_every", "2", "--probe_items", "3",
     ]  # fmt: skip
-    with pytest.raises(SystemExit, match="needs --freeze_bn"):
-        script.main(args)
-    assert script.main([*args, "--freeze_bn"]) == 0
-    net = load_checkpoint(tmp_path / "run" / "weights_fp16.pt")
-    bn = net.encoder._blocks[3]._bn1
-    assert torch.all(bn.running_mean == 0) and torch.all(bn.running_var == 1 - bn.eps)
-    assert ModelSpec.from_onnx(tmp_path / "run" / "rectsift-depth-lite0.onnx").output == "depth"
-    last = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
-    assert last["step"] == 3
+    for mode in ("recalibrated", "frozen"):
+        out = tmp_path / mode
+        extra = ["--freeze_bn"] if mode == "frozen" else []
+        assert script.main(["--out", str(out), *args, *extra]) == 0
+        net = load_checkpoint(out / "weights_fp16.pt")
+        bn = net.encoder._blocks[3]._bn1
+        identity = torch.all(bn.running_mean == 0) and torch.all(bn.running_var == 1 - bn.eps)
+        assert bool(identity) == (mode == "frozen")
+        assert ModelSpec.from_onnx(out / "rectsift-depth-lite0.onnx").output == "depth"
+        assert torch.load(out / "last.pt", weights_only=False)["step"] == 3

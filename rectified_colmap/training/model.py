@@ -272,7 +272,9 @@ def load_onnx_weights(path: str | Path, width: int | None = None) -> DepthNet:
     The export folds each BatchNorm into the convolution before it; such a pair comes back
     as the folded convolution and an identity BatchNorm (scale 1, mean 0, variance
     ``1 - eps``) whose bias is the folded bias, which computes the same function in eval
-    mode (fine-tune with BatchNorm frozen: ``freeze_batchnorm``). Decoder convolutions keep
+    mode; before fine-tuning with BatchNorm in training mode, :func:`recalibrate_batchnorm`
+    (or freeze it: :func:`freeze_batchnorm`, with a small learning rate: the folded weights
+    are not normalised). Decoder convolutions keep
     their names in the graph and are matched by name; the folded (renamed) encoder ones by
     their order, which is the encoder's execution order. ``width``: the decoder's, read
     from the file by default. Shapes are checked throughout."""
@@ -284,12 +286,7 @@ def load_onnx_weights(path: str | Path, width: int | None = None) -> DepthNet:
         raise ValueError(f"{path}: not an exported DepthNet (no proj.0.weight)")
     width = named["proj.0.weight"][0].shape[0] if width is None else width
     model = DepthNet(width=width, sky=any(k.startswith("sky_head.") for k in named))
-    enc = model.encoder
-    pairs = [(enc._conv_stem, enc._bn0)]
-    for blk in enc._blocks:
-        if blk.expand:
-            pairs.append((blk._expand_conv, blk._bn0))
-        pairs += [(blk._depthwise_conv, blk._bn1), (blk._project_conv, blk._bn2)]
+    pairs = _conv_bn_pairs(model.encoder)
     if len(anonymous) != len(pairs):
         raise ValueError(
             f"{path}: {len(anonymous)} folded convolutions, the encoder has {len(pairs)}"
@@ -320,6 +317,60 @@ def load_onnx_weights(path: str | Path, width: int | None = None) -> DepthNet:
     if left:
         raise ValueError(f"{path}: convolutions not in DepthNet: {sorted(left)[:5]}")
     logger.info("loaded DepthNet weights from %s (%d convolutions)", path, len(convs))
+    return model
+
+
+def _conv_bn_pairs(encoder: EfficientNetLite0Encoder) -> list[tuple[nn.Conv2d, nn.BatchNorm2d]]:
+    """Each encoder convolution with the BatchNorm that follows it, in execution order."""
+    pairs = [(encoder._conv_stem, encoder._bn0)]
+    for blk in encoder._blocks:
+        if blk.expand:
+            pairs.append((blk._expand_conv, blk._bn0))
+        pairs += [(blk._depthwise_conv, blk._bn1), (blk._project_conv, blk._bn2)]
+    return pairs
+
+
+@torch.no_grad()
+def recalibrate_batchnorm(model: DepthNet, images: torch.Tensor, chunk: int = 16) -> DepthNet:
+    """Re-express every encoder BatchNorm around the statistics of its input, keeping the
+    function (eval mode) unchanged: with per-channel mean m and variance v of the
+    convolution's output over ``images`` (N, 3, H, W, normalised input) and the current
+    affine map y = a z + c of the BatchNorm in eval mode, set running_mean = m,
+    running_var = v, weight = a sqrt(v + eps), bias = a m + c.
+
+    After :func:`load_onnx_weights` the BatchNorms are identities (a = 1) and the folded
+    convolutions have arbitrary scales; recalibrated, BatchNorm in TRAINING mode normalises
+    by batch statistics that match the running ones, so fine-tuning starts from the same
+    function and sees the scale-invariant dynamics the network was trained with, instead
+    of an optimiser stepping on unnormalised small weights."""
+    model.eval()
+    pairs = _conv_bn_pairs(model.encoder)
+    sums = {id(c): [0.0, 0.0, 0] for c, _ in pairs}
+
+    def hook(conv, _inp, out):
+        z = out.double()
+        acc = sums[id(conv)]
+        acc[0] = acc[0] + z.sum((0, 2, 3))
+        acc[1] = acc[1] + (z * z).sum((0, 2, 3))
+        acc[2] += z.numel() // z.shape[1]
+
+    handles = [c.register_forward_hook(hook) for c, _ in pairs]
+    try:
+        for i in range(0, len(images), chunk):
+            model.encoder(images[i : i + chunk])
+    finally:
+        for h in handles:
+            h.remove()
+    for conv, bn in pairs:
+        s1, s2, n = sums[id(conv)]
+        m = s1 / n
+        v = (s2 / n - m * m).clamp(min=0)
+        a = bn.weight.double() / torch.sqrt(bn.running_var.double() + bn.eps)
+        c = bn.bias.double() - a * bn.running_mean.double()
+        bn.running_mean.copy_(m.float())
+        bn.running_var.copy_(v.float())
+        bn.weight.copy_((a * torch.sqrt(v + bn.eps)).float())
+        bn.bias.copy_((a * m + c).float())
     return model
 
 
