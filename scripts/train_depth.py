@@ -52,6 +52,13 @@ def parse_args(argv=None):
     p.add_argument("--render_height", type=int, default=240)
     p.add_argument("--render_processes", type=int, default=2)
     p.add_argument(
+        "--tree_prob",
+        type=float,
+        default=0.0,
+        help="fraction of rendered scenes with trees (rectified_colmap.synth; use a new "
+        "--pool_dir: existing views are reused as they are)",
+    )
+    p.add_argument(
         "--texture_dir",
         type=Path,
         default=None,
@@ -173,6 +180,7 @@ def main(argv=None) -> int:
         args.render_height,
         args.texture_dir,
         args.render_processes,
+        tree_prob=args.tree_prob,
     )
     logger.info("pool: %d views in %s (%.0f s)", len(paths), args.pool_dir, time.time() - t0)
 
@@ -183,7 +191,7 @@ def main(argv=None) -> int:
         background = mp.get_context("fork").Process(
             target=render_pool,
             args=(args.pool_dir, more, args.render_width, args.render_height, args.texture_dir),
-            kwargs={"processes": args.render_background},
+            kwargs={"processes": args.render_background, "tree_prob": args.tree_prob},
             daemon=False,
         )
         background.start()

@@ -252,7 +252,7 @@ def test_rubble_has_no_dominant_planes(camera):
 def test_textures_are_deterministic_with_detail_at_several_scales():
     import cv2
 
-    for kind in ("facade", "bricks", "road", "cobbles", "clutter"):
+    for kind in ("facade", "bricks", "road", "cobbles", "clutter", "foliage", "bark"):
         a = synth.make_texture(kind, 11, 256, 384, 40.0)
         b = synth.make_texture(kind, 11, 256, 384, 40.0)
         c = synth.make_texture(kind, 12, 256, 384, 40.0)
@@ -336,3 +336,29 @@ def test_sift_matches_between_views_are_geometrically_consistent():
         good += int(np.sum(err < 3.0))
         total += len(m)
     assert total > 200 and good / total > 0.85
+
+
+def test_trees_add_non_planar_vegetation_and_leave_the_rest(camera):
+    """Trees are appended after everything else (the scene without them is a prefix, so
+    seeded scenes without trees are unchanged), block cameras, and a view of a crown has
+    no dominant plane (like rubble)."""
+    plain = synth.street(np.random.default_rng(4))
+    treed = synth.street(np.random.default_rng(4), trees=True)
+    n = len(plain)
+    assert len(treed) > n + 300
+    np.testing.assert_array_equal(treed.origin[:n], plain.origin[:n])
+    np.testing.assert_array_equal(treed.kind[:n], plain.kind[:n])
+    veg = synth.KIND_NAMES.index("vegetation")
+    assert np.all(treed.kind[n:] == veg) and not np.any(plain.kind == veg)
+    assert len(treed.blockers) > len(plain.blockers)
+    # look at the first crown from 7 m away, level with it
+    leaves = n + 5 + np.arange(150)  # after the first trunk's 5 quads: its leaves
+    c = np.median(treed.origin[leaves], 0)
+    eye = c + np.array([7.0, 0.0, 0.0]) if c[0] < 0 else c - np.array([7.0, 0.0, 0.0])
+    r = synth.render(treed, camera, synth.look_at(eye, c), supersample=1)
+    valid = r.plane_id >= 0
+    on_veg = valid & (treed.kind[np.maximum(r.plane_id, 0)] == veg)
+    assert on_veg.mean() > 0.2
+    R = r.cam_from_world.rotation.matrix()
+    assert _dominant_fraction(r.normals[on_veg].astype(np.float64) @ R) < 0.3
+    assert len(np.unique(r.plane_id[on_veg])) > 40

@@ -59,11 +59,17 @@ from .views import (
 
 
 def random_scene(
-    rng: np.random.Generator, texture_dir=None, probs=(0.7, 0.15, 0.15), texel: float = 0.025
+    rng: np.random.Generator,
+    texture_dir=None,
+    probs=(0.7, 0.15, 0.15),
+    texel: float = 0.025,
+    tree_prob: float = 0.0,
 ) -> Scene:
-    """street / corner / square with probabilities ``probs``."""
+    """street / corner / square with probabilities ``probs``; with trees with probability
+    ``tree_prob`` (0: no random number is drawn for it, so seeded scenes are unchanged)."""
     k = int(rng.choice(3, p=np.asarray(probs) / np.sum(probs)))
-    return (street, corner, square)[k](rng, texture_dir=texture_dir, texel=texel)
+    trees = bool(tree_prob > 0 and rng.random() < tree_prob)
+    return (street, corner, square)[k](rng, texture_dir=texture_dir, texel=texel, trees=trees)
 
 
 def random_sample(
@@ -74,11 +80,14 @@ def random_sample(
     supersample: int = 2,
     focal_range=(0.6, 1.4),
     noise: float = 0.0,
+    tree_prob: float = 0.0,
 ) -> RenderResult:
-    """A training view: random scene, random camera (focal ``focal_range`` x width), random
-    view (see :func:`random_view`). The camera and pose are in the result. Textures have
-    about the resolution of a pixel 10 m away (10 / width metres per texel, 2.5-6 cm)."""
-    scene = random_scene(rng, texture_dir, texel=float(np.clip(10.0 / width, 0.025, 0.06)))
+    """A training view: random scene (with trees with probability ``tree_prob``), random
+    camera (focal ``focal_range`` x width), random view (see :func:`random_view`). The
+    camera and pose are in the result. Textures have about the resolution of a pixel 10 m
+    away (10 / width metres per texel, 2.5-6 cm)."""
+    texel = float(np.clip(10.0 / width, 0.025, 0.06))
+    scene = random_scene(rng, texture_dir, texel=texel, tree_prob=tree_prob)
     camera = random_camera(rng, width, height, focal_range)
     pose = random_view(scene, rng, camera)
     return render(scene, camera, pose, supersample, noise, int(rng.integers(1 << 31)))

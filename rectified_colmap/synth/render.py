@@ -39,6 +39,7 @@ class RenderResult:
     plane_id: np.ndarray  # (H, W) int32 quad index, -1 = sky
     camera: pycolmap.Camera
     cam_from_world: pycolmap.Rigid3d
+    kind: np.ndarray | None = None  # (H, W) int8 quad kind (scene.KIND_NAMES), -1 = sky
 
     @property
     def K(self) -> np.ndarray:
@@ -297,7 +298,8 @@ def render(
     if noise > 0:
         img = img + np.random.default_rng(seed).normal(0, noise, img.shape).astype(np.float32)
     image = np.clip(img + 0.5, 0, 255).astype(np.uint8)
-    return RenderResult(image, depth32, normals, qid.astype(np.int32), camera, cam_from_world)
+    kind = np.where(qid >= 0, scene.kind[np.maximum(qid, 0)], -1).astype(np.int8)
+    return RenderResult(image, depth32, normals, qid.astype(np.int32), camera, cam_from_world, kind)
 
 
 def raycast(scene: Scene, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

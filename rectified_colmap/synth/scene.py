@@ -9,8 +9,11 @@ at ``origin``; for walls ``ev`` points down so row 0 is the top). ``normal`` is 
 unit normal (used only for shading; renders orient normals toward the camera).
 
 Generators (all deterministic from a numpy Generator): :func:`street`, :func:`corner`,
-:func:`square`, :func:`rubble`. Each scene also knows where cameras may stand
-(``free_lo``/``free_hi`` box minus the ``blockers`` oriented boxes) for the view helpers.
+:func:`square`, :func:`rubble`; street, corner and square take ``trees`` (opt-in, so that
+seeded scenes without it stay as they were): trees of many small leaf quads
+(:func:`_trees`), the commonest non-planar thing in real street photos. Each scene also
+knows where cameras may stand (``free_lo``/``free_hi`` box minus the ``blockers`` oriented
+boxes) for the view helpers.
 """
 
 from __future__ import annotations
@@ -27,8 +30,8 @@ logger = logging.getLogger(__name__)
 UP = np.array([0.0, 0.0, 1.0])
 
 # quad kinds
-GROUND, FACADE, WALL, RELIEF, CLUTTER, ROOF, RUBBLE = range(7)
-KIND_NAMES = ["ground", "facade", "wall", "relief", "clutter", "roof", "rubble"]
+GROUND, FACADE, WALL, RELIEF, CLUTTER, ROOF, RUBBLE, VEGETATION = range(8)
+KIND_NAMES = ["ground", "facade", "wall", "relief", "clutter", "roof", "rubble", "vegetation"]
 
 
 @dataclass
@@ -385,6 +388,49 @@ def _clutter(b: _Builder, rng, lo, hi, n: int) -> None:
         b.box(c - (e1 + e2) / 2, e1, e2, H, kinds=(CLUTTER,) * 5, textures=("clutter",) * 5)
 
 
+def _trees(b: _Builder, rng, lo, hi, n: int, leaves=(150, 320)) -> None:
+    """``n`` trees in the xy rectangle lo..hi: a trunk (a thin box) and a crown of many
+    small randomly oriented leaf-cluster quads in an ellipsoid (no dominant plane, like
+    rubble), sharing a few foliage textures. Each tree is a camera blocker."""
+    foliage = [b.texture("foliage", 12.0, 12.0, texel=0.02, max_tex=512) for _ in range(3)]
+    bark = b.texture("bark", 1.0, 8.0, texel=0.02, max_tex=512)
+    for _ in range(n):
+        c = np.array([rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1]), 0.0])
+        trunk_h = rng.uniform(1.8, 4.0)
+        tw = rng.uniform(0.2, 0.5)
+        b.box(
+            c - [tw / 2, tw / 2, 0],
+            [tw, 0, 0],
+            [0, tw, 0],
+            trunk_h + 0.5,
+            kinds=(VEGETATION,) * 5,
+            textures=(bark,) * 5,
+            blocker=False,
+        )
+        rx, rz = rng.uniform(1.5, 3.5), rng.uniform(1.5, 4.0)
+        centre = c + UP * (trunk_h + rz * 0.8)
+        t = foliage[int(rng.integers(len(foliage)))]
+        for _ in range(int(rng.integers(*leaves))):
+            p = rng.normal(size=3)
+            p = p / np.linalg.norm(p) * rng.random() ** (1 / 3) * np.array([rx, rx, rz])
+            R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+            su, sv = rng.uniform(0.3, 0.9, 2)
+            b.quad(
+                centre + p - R[:, 0] * su / 2 - R[:, 1] * sv / 2,
+                R[:, 0] * su,
+                R[:, 1] * sv,
+                R[:, 2],
+                VEGETATION,
+                t,
+                albedo=rng.uniform(0.6, 1.1),
+                tex_offset=rng.uniform(0, 400, 2),
+            )
+        r = rx + 0.5
+        b.blockers.append(
+            np.stack([c - [r, r, 0], [2 * r, 0, 0], [0, 2 * r, 0], UP * (trunk_h + 2 * rz)])
+        )
+
+
 def street(
     rng: np.random.Generator,
     texture_dir=None,
@@ -392,9 +438,11 @@ def street(
     length: float | None = None,
     two_sided: bool | None = None,
     texel: float = 0.025,
+    trees: bool = False,
 ) -> Scene:
     """A street canyon along +y: ground (road + sidewalks, tiles), facades on one or both
-    sides facing each other (setbacks, gaps, balconies), clutter boxes, sky behind."""
+    sides facing each other (setbacks, gaps, balconies), clutter boxes, sky behind; with
+    ``trees``, 2-8 trees on the sidewalks."""
     seed = int(rng.integers(1 << 31))
     b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
     L = length or rng.uniform(50.0, 90.0)
@@ -425,6 +473,11 @@ def street(
             textures=("facade", "plaster", "plaster", "plaster", "roof"),
         )
     _clutter(b, rng, [-w / 2 + 0.5, 2], [w / 2 - 0.5, L - 2], int(rng.integers(2, 9)))
+    if trees:
+        side = [(-w / 2 + 0.3, -w / 2 + sw - 0.2), (w / 2 - sw + 0.2, w / 2 - 0.3)]
+        for k in range(int(rng.integers(2, 9))):
+            x0, x1 = side[k % 2 if two else 0]
+            _trees(b, rng, [x0, 2], [max(x0, x1), L - 2], 1)
     return b.finish(
         "street",
         seed,
@@ -435,10 +488,14 @@ def street(
 
 
 def corner(
-    rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5, texel: float = 0.025
+    rng: np.random.Generator,
+    texture_dir=None,
+    photo_prob: float = 0.5,
+    texel: float = 0.025,
+    trees: bool = False,
 ) -> Scene:
     """Two orthogonal rows of facades (along +x at y = 0 facing +y, along +y at x = 0
-    facing +x) and the ground in front of them."""
+    facing +x) and the ground in front of them; with ``trees``, 1-5 trees."""
     seed = int(rng.integers(1 << 31))
     b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
     L = rng.uniform(25.0, 45.0)
@@ -446,13 +503,20 @@ def corner(
     _facade_row(b, rng, [0, 0, 0], [1, 0, 0], [0, 1, 0], L, setback_prob=0.25)
     _facade_row(b, rng, [0, L, 0], [0, -1, 0], [1, 0, 0], L, setback_prob=0.25)
     _clutter(b, rng, [3, 3], [L * 0.8, L * 0.8], int(rng.integers(1, 6)))
+    if trees:
+        _trees(b, rng, [4, 4], [L, L], int(rng.integers(1, 6)))
     return b.finish("corner", seed, [2.0, 2.0, 1.2], [L, L, 10.0], {"length": L})
 
 
 def square(
-    rng: np.random.Generator, texture_dir=None, photo_prob: float = 0.5, texel: float = 0.025
+    rng: np.random.Generator,
+    texture_dir=None,
+    photo_prob: float = 0.5,
+    texel: float = 0.025,
+    trees: bool = False,
 ) -> Scene:
-    """A rectangular square closed by facades on all four sides (facing inward)."""
+    """A rectangular square closed by facades on all four sides (facing inward); with
+    ``trees``, 1-6 trees."""
     seed = int(rng.integers(1 << 31))
     b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
     W, D = rng.uniform(20, 45), rng.uniform(20, 45)
@@ -462,6 +526,8 @@ def square(
     _facade_row(b, rng, [W, D, 0], [-1, 0, 0], [0, -1, 0], W, setback_prob=0.2)
     _facade_row(b, rng, [0, D, 0], [0, -1, 0], [1, 0, 0], D, setback_prob=0.2)
     _clutter(b, rng, [3, 3], [W - 3, D - 3], int(rng.integers(2, 8)))
+    if trees:
+        _trees(b, rng, [4, 4], [W - 4, D - 4], int(rng.integers(1, 7)))
     return b.finish(
         "square", seed, [1.5, 1.5, 1.2], [W - 1.5, D - 1.5, 10.0], {"width": W, "depth": D}
     )

@@ -574,7 +574,29 @@ def rubble(rng, h, w, ppm) -> np.ndarray:
     return np.clip(img, 0, 1)
 
 
+def foliage(rng, h, w, ppm) -> np.ndarray:
+    """Leaves: multi-scale green-to-olive noise with dark gaps and sunlit flecks."""
+    base = _colour(rng, 0.15, 0.45, 0.2) * np.array([0.7, 1.2, 0.6], np.float32)
+    n = value_noise(rng, h, w, rng.uniform(0.05, 0.15) * ppm, 5)[..., None]
+    img = base * (0.35 + 1.1 * n)
+    gaps = value_noise(rng, h, w, 0.08 * ppm, 3) < rng.uniform(0.25, 0.4)
+    img[gaps] *= 0.3
+    flecks = value_noise(rng, h, w, 0.03 * ppm, 2) > 0.8
+    img[flecks] = img[flecks] * 1.6 + 0.05
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def bark(rng, h, w, ppm) -> np.ndarray:
+    """Tree bark: dark brown-grey with vertical streaks."""
+    img = np.broadcast_to(_colour(rng, 0.15, 0.4, 0.25), (h, w, 3)).astype(np.float32)
+    streak = value_noise(rng, h, w, 0.05 * ppm, 3)
+    streak = cv2.blur(streak, (1, max(3, int(0.3 * ppm)) | 1))
+    return np.clip(img * (0.5 + streak[..., None]), 0, 1).astype(np.float32)
+
+
 GENERATORS = {
+    "foliage": foliage,
+    "bark": bark,
     "facade": facade,
     "plaster": plaster,
     "bricks": bricks,
