@@ -413,3 +413,21 @@ def test_evaluate_planes_scores_normals_against_plane_fits(tmp_path):
         lambda path, rgb: DepthMap(depth[path.name] * tilt, "metric"), tmp_path, sets=("s",)
     )
     assert bent["plane_err_pooled"] > 10 * max(exact["plane_err_pooled"], 0.5)
+
+
+def test_evaluate_vegetation_separates_trees_from_planes():
+    """Through the pipeline's plane labels, the exact depth leaves tree crowns mostly
+    non-planar and the buildings planar; a constant depth (one fronto-parallel plane
+    everywhere) is caught labelling the trees planar."""
+    from rectified_colmap.depth import DepthMap
+    from rectified_colmap.training.evaluate import evaluate_vegetation
+
+    res = evaluate_vegetation(
+        lambda rgb: DepthMap(np.full(rgb.shape[:2], 5.0, np.float32), "metric"),
+        num=3,
+        width=192,
+        height=144,
+    )
+    assert res["veg_views"] == 3
+    assert res["veg_planar_gtdepth"] < 0.25 < 0.6 < res["surface_planar_gtdepth"]
+    assert res["veg_planar_pred"] > 0.9

@@ -18,6 +18,13 @@ Ground-truth frames (``--york REAL_POOL``): the same per image against York Urba
 hand-labelled Manhattan frames, ECCV08 test split (never used in training).
 Timing: seconds per 1536x1024 image through OnnxDepthSource (1 and 2 threads).
 
+Trees (``--vegetation N``): N held-out renders whose scenes all have trees (seeds from
+``--seed`` + 10^6, ``synth`` ``tree_prob`` 1; views with < 5 % tree pixels skipped); the
+pipeline's plane labels of the predicted depth (``evaluate_sky.plane_labels``) are counted
+on the tree pixels (``veg_planar``: should be low, crowns have no plane) and on the other
+surfaces (``surface_planar``: so that labelling nothing is visible), pooled over the views,
+beside the same from the exact depth (``*_gtdepth``).
+
 Plane-fit normals (``--planes REAL_POOL``): on the held-out multi-view sets of the real
 pool (:data:`PLANE_EVAL_SETS`, never trained on), planes fitted to each set's SfM points give
 exact normals where one plane's points are dense
@@ -117,6 +124,51 @@ def evaluate(
         logger.info("view %d: %s", i, {k: round(v, 2) for k, v in row.items()})
     out = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     out["num_views"] = num
+    return out
+
+
+def evaluate_vegetation(
+    depth_for,
+    num: int = 12,
+    seed: int = 901_000_000,
+    width: int = 384,
+    height: int = 288,
+    texture_dir: str | Path | None = None,
+    min_veg: float = 0.05,
+) -> dict:
+    """Tree pixels labelled planar (module docstring) -> pooled fractions. ``depth_for(rgb)``
+    -> DepthMap of one render."""
+    from .. import synth
+    from ..depth import DepthMap
+    from .evaluate_sky import plane_labels, upsample_nearest
+
+    veg_kind = synth.KIND_NAMES.index("vegetation")
+    tex = None if texture_dir is None else str(texture_dir)
+    counts = {}
+    used = 0
+    for i in range(num * 3):
+        if used == num:
+            break
+        rng = np.random.default_rng(seed + i)
+        r = synth.random_sample(rng, width, height, tex, tree_prob=1.0)
+        veg, surf = r.kind == veg_kind, (r.kind >= 0) & (r.kind != veg_kind)
+        if veg.mean() < min_veg:
+            continue
+        used += 1
+        exact = DepthMap(np.where(np.isfinite(r.depth), r.depth, 0.0), "metric")
+        for tag, dm in (("pred", depth_for(r.image)), ("gtdepth", exact)):
+            planar = upsample_nearest(plane_labels(dm, r.camera)[0] >= 0, width, height)
+            for name, m in (("veg", veg), ("surface", surf)):
+                c = counts.setdefault(f"{name}_{tag}", [0, 0])
+                c[0] += int((m & planar).sum())
+                c[1] += int(m.sum())
+    if not used:
+        raise ValueError("no tree view with enough tree pixels")
+    out = {}
+    for key, (a, b) in counts.items():
+        name, tag = key.split("_")
+        out[f"{name}_planar_{tag}"] = a / max(b, 1)
+    out["veg_views"] = used
     return out
 
 
@@ -344,6 +396,12 @@ def main(argv=None) -> int:
         help="real-pool folder: score against York Urban's ground-truth frames (test split)",
     )
     p.add_argument(
+        "--vegetation",
+        type=int,
+        default=0,
+        help="N held-out renders with trees: tree pixels labelled planar",
+    )
+    p.add_argument(
         "--planes",
         type=Path,
         default=None,
@@ -375,6 +433,17 @@ def main(argv=None) -> int:
         york = evaluate_gt_frames(lambda path, rgb: src(rgb), york_test_items(args.york))
         york.pop("rows")
         res.update(york)
+    if args.vegetation > 0:
+        from ..depth.onnx import OnnxDepthSource
+
+        src = OnnxDepthSource(
+            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
+        )
+        res.update(
+            evaluate_vegetation(
+                src, args.vegetation, args.seed + 1_000_000, texture_dir=args.texture_dir
+            )
+        )
     if args.planes:
         from ..depth.onnx import OnnxDepthSource
 
