@@ -59,6 +59,9 @@ def parse_args(argv=None):
         "--pool_dir: existing views are reused as they are)",
     )
     p.add_argument(
+        "--cloud_prob", type=float, default=0.0, help="fraction of rendered skies with clouds"
+    )
+    p.add_argument(
         "--texture_dir",
         type=Path,
         default=None,
@@ -181,6 +184,7 @@ def main(argv=None) -> int:
         args.texture_dir,
         args.render_processes,
         tree_prob=args.tree_prob,
+        cloud_prob=args.cloud_prob,
     )
     logger.info("pool: %d views in %s (%.0f s)", len(paths), args.pool_dir, time.time() - t0)
 
@@ -191,7 +195,11 @@ def main(argv=None) -> int:
         background = mp.get_context("fork").Process(
             target=render_pool,
             args=(args.pool_dir, more, args.render_width, args.render_height, args.texture_dir),
-            kwargs={"processes": args.render_background, "tree_prob": args.tree_prob},
+            kwargs={
+                "processes": args.render_background,
+                "tree_prob": args.tree_prob,
+                "cloud_prob": args.cloud_prob,
+            },
             daemon=False,
         )
         background.start()

@@ -362,3 +362,28 @@ def test_trees_add_non_planar_vegetation_and_leave_the_rest(camera):
     R = r.cam_from_world.rotation.matrix()
     assert _dominant_fraction(r.normals[on_veg].astype(np.float64) @ R) < 0.3
     assert len(np.unique(r.plane_id[on_veg])) > 40
+
+
+def test_clouds_change_only_the_sky(street_scene, camera):
+    """Clouds (opt-in) texture the sky and nothing else: the same view with and without
+    them has the same depth, the same colours on surfaces, and a sky with more detail;
+    the cloud map is periodic in azimuth (no seam behind the camera)."""
+    import dataclasses
+
+    from rectified_colmap.synth.render import _cloud_map
+
+    pose = synth.look_at([0.0, 5.0, 1.6], [0.0, 40.0, 12.0])
+    clear = synth.render(street_scene, camera, pose, supersample=1)
+    cloudy_scene = dataclasses.replace(street_scene, clouds=0.6, _pyramids={})
+    cloudy = synth.render(cloudy_scene, camera, pose, supersample=1)
+    np.testing.assert_array_equal(clear.depth, cloudy.depth)
+    surf = clear.plane_id >= 0
+    sky = ~surf
+    assert sky.mean() > 0.1
+    np.testing.assert_array_equal(clear.image[surf], cloudy.image[surf])
+    assert np.abs(cloudy.image[sky].astype(int) - clear.image[sky]).mean() > 3
+    cmap = _cloud_map(cloudy_scene)
+    assert 0.3 < (cmap > 0).mean() < 0.9
+    seam = np.abs(cmap[:, 0] - cmap[:, -1]).mean()
+    inner = np.abs(np.diff(cmap, axis=1)).mean()
+    assert seam < 3 * inner + 1e-3

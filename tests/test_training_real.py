@@ -415,14 +415,14 @@ def test_evaluate_planes_scores_normals_against_plane_fits(tmp_path):
     assert bent["plane_err_pooled"] > 10 * max(exact["plane_err_pooled"], 0.5)
 
 
-def test_evaluate_vegetation_separates_trees_from_planes():
+def test_evaluate_outdoor_separates_trees_from_planes():
     """Through the pipeline's plane labels, the exact depth leaves tree crowns mostly
     non-planar and the buildings planar; a constant depth (one fronto-parallel plane
     everywhere) is caught labelling the trees planar."""
     from rectified_colmap.depth import DepthMap
-    from rectified_colmap.training.evaluate import evaluate_vegetation
+    from rectified_colmap.training.evaluate import evaluate_outdoor
 
-    res = evaluate_vegetation(
+    res = evaluate_outdoor(
         lambda rgb: DepthMap(np.full(rgb.shape[:2], 5.0, np.float32), "metric"),
         num=3,
         width=192,
@@ -431,3 +431,4 @@ def test_evaluate_vegetation_separates_trees_from_planes():
     assert res["veg_views"] == 3
     assert res["veg_planar_gtdepth"] < 0.25 < 0.6 < res["surface_planar_gtdepth"]
     assert res["veg_planar_pred"] > 0.9
+    assert res["sky_planar_gtdepth"] == 0 and res["sky_planar_pred"] > 0.9

@@ -64,12 +64,17 @@ def random_scene(
     probs=(0.7, 0.15, 0.15),
     texel: float = 0.025,
     tree_prob: float = 0.0,
+    cloud_prob: float = 0.0,
 ) -> Scene:
     """street / corner / square with probabilities ``probs``; with trees with probability
-    ``tree_prob`` (0: no random number is drawn for it, so seeded scenes are unchanged)."""
+    ``tree_prob``, and clouds (cover 0.2-0.9) with probability ``cloud_prob`` (for 0 no
+    random number is drawn, so seeded scenes are unchanged)."""
     k = int(rng.choice(3, p=np.asarray(probs) / np.sum(probs)))
     trees = bool(tree_prob > 0 and rng.random() < tree_prob)
-    return (street, corner, square)[k](rng, texture_dir=texture_dir, texel=texel, trees=trees)
+    scene = (street, corner, square)[k](rng, texture_dir=texture_dir, texel=texel, trees=trees)
+    if cloud_prob > 0 and rng.random() < cloud_prob:
+        scene.clouds = float(rng.uniform(0.2, 0.9))
+    return scene
 
 
 def random_sample(
@@ -81,13 +86,15 @@ def random_sample(
     focal_range=(0.6, 1.4),
     noise: float = 0.0,
     tree_prob: float = 0.0,
+    cloud_prob: float = 0.0,
 ) -> RenderResult:
-    """A training view: random scene (with trees with probability ``tree_prob``), random
+    """A training view: random scene (with trees and clouds with probabilities
+    ``tree_prob`` and ``cloud_prob``), random
     camera (focal ``focal_range`` x width), random view (see :func:`random_view`). The
     camera and pose are in the result. Textures have about the resolution of a pixel 10 m
     away (10 / width metres per texel, 2.5-6 cm)."""
     texel = float(np.clip(10.0 / width, 0.025, 0.06))
-    scene = random_scene(rng, texture_dir, texel=texel, tree_prob=tree_prob)
+    scene = random_scene(rng, texture_dir, texel=texel, tree_prob=tree_prob, cloud_prob=cloud_prob)
     camera = random_camera(rng, width, height, focal_range)
     pose = random_view(scene, rng, camera)
     return render(scene, camera, pose, supersample, noise, int(rng.integers(1 << 31)))

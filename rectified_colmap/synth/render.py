@@ -242,8 +242,42 @@ def _sky(scene: Scene, R: np.ndarray, K: np.ndarray, W: int, H: int) -> np.ndarr
     t = (np.clip(e, 0, 1) ** 0.6)[..., None].astype(np.float32)
     horizon, zenith = scene.sky
     sky = horizon * (1 - t) + zenith * t
+    if scene.clouds > 0:
+        # world direction of each ray: azimuth and elevation index a fixed cloud map
+        dx = R[0, 0] * rx[None, :] + R[1, 0] * ry[:, None] + R[2, 0]
+        dy = R[0, 1] * rx[None, :] + R[1, 1] * ry[:, None] + R[2, 1]
+        cmap = _cloud_map(scene)
+        h, w = cmap.shape
+        col = (np.arctan2(dy, dx) / (2 * np.pi) % 1.0) * w
+        row = (1 - np.clip(e, 0, 1)) * (h - 1)
+        dens = cv2.remap(
+            cmap,
+            to_opencv_points(col).astype(np.float32),
+            to_opencv_points(row).astype(np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_WRAP,
+        )[..., None]
+        grey = np.float32(0.7 + 0.3 * (scene.seed % 1000) / 1000)
+        sky = sky * (1 - dens) + grey * (1 - 0.25 * dens) * dens
     below = (e < 0)[..., None]
     return np.where(below, horizon * 0.8, sky).astype(np.float32)
+
+
+def _cloud_map(scene: Scene, h: int = 256, w: int = 1024) -> np.ndarray:
+    """(h, w) float32 cloud density over (elevation 90 -> 0 deg, azimuth 0 -> 360 deg),
+    periodic in azimuth, deterministic from the scene's seed; cover ``scene.clouds``."""
+    if "clouds" not in scene._pyramids:
+        from .textures import value_noise
+
+        rng = np.random.default_rng(scene.seed + 17)
+        pad = w // 4
+        n = value_noise(rng, h, w + pad, rng.uniform(0.15, 0.4) * w, 6)
+        a = np.linspace(0, 1, pad, dtype=np.float32)[None]
+        n[:, :pad] = n[:, :pad] * a + n[:, w:] * (1 - a)  # cross-fade: periodic in azimuth
+        n = n[:, :w]
+        lo = np.quantile(n, 1 - scene.clouds)  # the densest ``clouds`` of the sky is cloud
+        scene._pyramids["clouds"] = np.clip((n - lo) / 0.12, 0, 1).astype(np.float32)
+    return scene._pyramids["clouds"]
 
 
 def render(

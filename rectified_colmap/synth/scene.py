@@ -66,6 +66,8 @@ class Scene:
     name: str = "scene"
     photos: tuple = ()
     meta: dict = field(default_factory=dict)
+    clouds: float = 0.0
+    """Cloud cover of the sky in [0, 1] (0: a clear gradient sky; synth.render)."""
     _pyramids: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self) -> int:

@@ -35,6 +35,7 @@ logger = logging.getLogger(__name__)
 
 _TEXTURE_DIR: str | None = None
 _TREE_PROB = 0.0
+_CLOUD_PROB = 0.0
 
 
 def synth_sample(
@@ -44,6 +45,7 @@ def synth_sample(
     texture_dir: str | Path | None = None,
     supersample: int = 2,
     tree_prob: float = 0.0,
+    cloud_prob: float = 0.0,
 ) -> dict:
     """One training view from ``rectified_colmap.synth.random_sample`` in the pool format
     (see the module docstring), plus ``R`` (3, 3): cam_from_world rotation (the scenes are
@@ -56,6 +58,7 @@ def synth_sample(
         None if texture_dir is None else str(texture_dir),
         supersample,
         tree_prob=tree_prob,
+        cloud_prob=cloud_prob,
     )
     valid = np.isfinite(r.depth)
     return {
@@ -67,11 +70,11 @@ def synth_sample(
     }
 
 
-def _init_worker(texture_dir, tree_prob=0.0):
-    global _TEXTURE_DIR, _TREE_PROB
+def _init_worker(texture_dir, tree_prob=0.0, cloud_prob=0.0):
+    global _TEXTURE_DIR, _TREE_PROB, _CLOUD_PROB
     cv2.setNumThreads(1)
     _TEXTURE_DIR = None if texture_dir is None else str(texture_dir)
-    _TREE_PROB = float(tree_prob)
+    _TREE_PROB, _CLOUD_PROB = float(tree_prob), float(cloud_prob)
 
 
 def _render_one(args) -> str:
@@ -79,7 +82,9 @@ def _render_one(args) -> str:
     path = Path(out_dir) / f"{seed:08d}.npz"
     if path.exists():
         return str(path)
-    s = synth_sample(seed, width, height, _TEXTURE_DIR, tree_prob=_TREE_PROB)
+    s = synth_sample(
+        seed, width, height, _TEXTURE_DIR, tree_prob=_TREE_PROB, cloud_prob=_CLOUD_PROB
+    )
     tmp = path.with_suffix(".tmp.npz")
     np.savez(
         tmp, image=s["image"], depth=s["depth"], normals=s["normals"].astype(np.float16), K=s["K"]
@@ -96,17 +101,21 @@ def render_pool(
     texture_dir: str | Path | None = None,
     processes: int = 2,
     tree_prob: float = 0.0,
+    cloud_prob: float = 0.0,
 ) -> list[Path]:
     """Render (or reuse) one view per seed into ``out_dir/<seed>.npz``; returns the paths.
-    A file already there is reused whatever ``tree_prob`` made it: one folder per setting."""
+    A file already there is reused whatever ``tree_prob`` / ``cloud_prob`` made it: one
+    folder per setting."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     jobs = [(int(s), width, height, str(out_dir)) for s in seeds]
     if processes <= 1:
-        _init_worker(texture_dir, tree_prob)
+        _init_worker(texture_dir, tree_prob, cloud_prob)
         paths = [_render_one(j) for j in jobs]
     else:
-        with mp.get_context("fork").Pool(processes, _init_worker, (texture_dir, tree_prob)) as pool:
+        with mp.get_context("fork").Pool(
+            processes, _init_worker, (texture_dir, tree_prob, cloud_prob)
+        ) as pool:
             paths = []
             for i, p in enumerate(pool.imap(_render_one, jobs, chunksize=4)):
                 paths.append(p)

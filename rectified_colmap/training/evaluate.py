@@ -18,12 +18,13 @@ Ground-truth frames (``--york REAL_POOL``): the same per image against York Urba
 hand-labelled Manhattan frames, ECCV08 test split (never used in training).
 Timing: seconds per 1536x1024 image through OnnxDepthSource (1 and 2 threads).
 
-Trees (``--vegetation N``): N held-out renders whose scenes all have trees (seeds from
-``--seed`` + 10^6, ``synth`` ``tree_prob`` 1; views with < 5 % tree pixels skipped); the
-pipeline's plane labels of the predicted depth (``evaluate_sky.plane_labels``) are counted
-on the tree pixels (``veg_planar``: should be low, crowns have no plane) and on the other
-surfaces (``surface_planar``: so that labelling nothing is visible), pooled over the views,
-beside the same from the exact depth (``*_gtdepth``).
+Trees and clouds (``--outdoor N``): N held-out renders whose scenes all have trees and a
+cloudy sky (seeds from ``--seed`` + 10^6, ``synth`` ``tree_prob`` and ``cloud_prob`` 1;
+views with < 5 % tree pixels skipped); the pipeline's plane labels of the predicted depth
+(``evaluate_sky.plane_labels``) are counted on the tree pixels (``veg_planar``: should be
+low, crowns have no plane), on the sky (``sky_planar``) and on the other surfaces
+(``surface_planar``: so that labelling nothing is visible), pooled over the views, beside
+the same from the exact depth (``*_gtdepth``; its sky has no depth).
 
 Plane-fit normals (``--planes REAL_POOL``): on the held-out multi-view sets of the real
 pool (:data:`PLANE_EVAL_SETS`, never trained on), planes fitted to each set's SfM points give
@@ -127,7 +128,7 @@ def evaluate(
     return out
 
 
-def evaluate_vegetation(
+def evaluate_outdoor(
     depth_for,
     num: int = 12,
     seed: int = 901_000_000,
@@ -136,8 +137,8 @@ def evaluate_vegetation(
     texture_dir: str | Path | None = None,
     min_veg: float = 0.05,
 ) -> dict:
-    """Tree pixels labelled planar (module docstring) -> pooled fractions. ``depth_for(rgb)``
-    -> DepthMap of one render."""
+    """Tree, sky and other pixels labelled planar (module docstring) -> pooled fractions.
+    ``depth_for(rgb)`` -> DepthMap of one render."""
     from .. import synth
     from ..depth import DepthMap
     from .evaluate_sky import plane_labels, upsample_nearest
@@ -150,15 +151,16 @@ def evaluate_vegetation(
         if used == num:
             break
         rng = np.random.default_rng(seed + i)
-        r = synth.random_sample(rng, width, height, tex, tree_prob=1.0)
+        r = synth.random_sample(rng, width, height, tex, tree_prob=1.0, cloud_prob=1.0)
         veg, surf = r.kind == veg_kind, (r.kind >= 0) & (r.kind != veg_kind)
+        sky = r.kind < 0
         if veg.mean() < min_veg:
             continue
         used += 1
         exact = DepthMap(np.where(np.isfinite(r.depth), r.depth, 0.0), "metric")
         for tag, dm in (("pred", depth_for(r.image)), ("gtdepth", exact)):
             planar = upsample_nearest(plane_labels(dm, r.camera)[0] >= 0, width, height)
-            for name, m in (("veg", veg), ("surface", surf)):
+            for name, m in (("veg", veg), ("surface", surf), ("sky", sky)):
                 c = counts.setdefault(f"{name}_{tag}", [0, 0])
                 c[0] += int((m & planar).sum())
                 c[1] += int(m.sum())
@@ -396,10 +398,10 @@ def main(argv=None) -> int:
         help="real-pool folder: score against York Urban's ground-truth frames (test split)",
     )
     p.add_argument(
-        "--vegetation",
+        "--outdoor",
         type=int,
         default=0,
-        help="N held-out renders with trees: tree pixels labelled planar",
+        help="N held-out renders with trees and clouds: tree and sky pixels labelled planar",
     )
     p.add_argument(
         "--planes",
@@ -433,16 +435,14 @@ def main(argv=None) -> int:
         york = evaluate_gt_frames(lambda path, rgb: src(rgb), york_test_items(args.york))
         york.pop("rows")
         res.update(york)
-    if args.vegetation > 0:
+    if args.outdoor > 0:
         from ..depth.onnx import OnnxDepthSource
 
         src = OnnxDepthSource(
             args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
         )
         res.update(
-            evaluate_vegetation(
-                src, args.vegetation, args.seed + 1_000_000, texture_dir=args.texture_dir
-            )
+            evaluate_outdoor(src, args.outdoor, args.seed + 1_000_000, texture_dir=args.texture_dir)
         )
     if args.planes:
         from ..depth.onnx import OnnxDepthSource
