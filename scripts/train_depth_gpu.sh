@@ -27,7 +27,7 @@ AMP=--amp
 [ "$DEVICE" = cpu ] && AMP=
 python3 scripts/train_depth.py --device "$DEVICE" $AMP --out "$OUT/run" \
   --steps 1000000 --time_budget "$MINUTES" --batch 32 --lr 6e-4 --height 192 --width 256 \
-  --pool_size 1200 --pool_dir "$OUT/pool" --render_processes 15 \
+  --pool_size 1200 --pool_dir "${POOL:-/tmp/rectsift_pool}" --render_processes 15 \
   --texture_dir outputs/carry/textures --stream --render_background 5 --workers 10 \
   --sky --real_pool outputs/carry/real_pool --real_frac 0.5 --w_lines 2.0 \
   --tree_prob 0.3 --cloud_prob 0.3 \
