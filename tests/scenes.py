@@ -54,3 +54,27 @@ def plane_depth(n: np.ndarray, K: np.ndarray, h: int, w: int) -> np.ndarray:
     jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     rays = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1)
     return -1.0 / (rays @ n)
+
+
+def street_views_folder(folder, seed: int, width: int, height: int, focal: float, n: int = 2):
+    """``n`` random views of one street written as ``folder/images/<i>.png`` with a
+    pycolmap Reconstruction holding their camera and poses (not written: the caller adds
+    what it needs and writes it) -> (reconstruction, {name: render}, rng)."""
+    import cv2
+    import pycolmap
+
+    rng = np.random.default_rng(seed)
+    scene = synth.street(rng)
+    camera = synth.pinhole_camera(width, height, focal)
+    camera.camera_id = 1
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(camera)
+    (folder / "images").mkdir(parents=True)
+    renders = {}
+    for i in range(n):
+        pose = synth.random_view(scene, rng, camera)
+        r = synth.render(scene, camera, pose)
+        name = f"{i}.png"
+        cv2.imwrite(str(folder / "images" / name), r.image[..., ::-1])
+        renders[name] = r
+    return rec, renders, rng

@@ -16,7 +16,7 @@ from rectified_colmap.training.data import (  # noqa: E402
 from rectified_colmap.training.model import DepthNet, build_model, pretrained_weights_path  # noqa: E402
 from rectified_colmap.training.train import lr_factor, make_optimizer, train_step  # noqa: E402
 
-from tests.scenes import plane_depth  # noqa: E402
+from tests.scenes import plane_depth, street_views_folder  # noqa: E402
 
 torch.set_num_threads(1)
 
@@ -227,29 +227,16 @@ def test_evaluate_real_against_line_frame(tmp_path):
     """The real-photo metric on a rendered street written as a COLMAP scene: exact depth
     gives the line frame's directions (< 1 deg) and most normals agree; a depth that tilts
     every plane by 20 degrees is caught."""
-    import cv2
     import pycolmap
 
-    from rectified_colmap import synth
     from rectified_colmap.depth import DepthMap
     from rectified_colmap.training.evaluate import evaluate_real
 
-    rng = np.random.default_rng(3)
-    scene = synth.street(rng)
-    camera = synth.pinhole_camera(640, 480, 500.0)
-    camera.camera_id = 1
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(camera)
-    (tmp_path / "s" / "images").mkdir(parents=True)
-    depth = {}
-    for i in range(2):
-        pose = synth.random_view(scene, rng, camera)
-        r = synth.render(scene, camera, pose)
-        name = f"{i}.png"
-        cv2.imwrite(str(tmp_path / "s" / "images" / name), r.image[..., ::-1])
-        depth[name] = r.depth
+    rec, renders, _ = street_views_folder(tmp_path / "s", 3, 640, 480, 500.0)
+    depth = {name: r.depth for name, r in renders.items()}
+    for i, (name, r) in enumerate(renders.items()):
         rec.add_image_with_trivial_frame(
-            pycolmap.Image(name=name, camera_id=1, image_id=i + 1), pose
+            pycolmap.Image(name=name, camera_id=1, image_id=i + 1), r.cam_from_world
         )
     (tmp_path / "s" / "sparse").mkdir()
     rec.write_text(str(tmp_path / "s" / "sparse"))

@@ -6,7 +6,7 @@ rendered street with exact normals. The torch parts are skipped without torch.""
 import numpy as np
 import pycolmap
 import pytest
-from tests.scenes import plane_depth
+from tests.scenes import plane_depth, street_views_folder
 
 from rectified_colmap import synth
 from rectified_colmap.training import real
@@ -363,30 +363,19 @@ def test_evaluate_planes_scores_normals_against_plane_fits(tmp_path):
     """The plane-fit measure on a rendered street written as a real-pool set: SfM-like
     points sampled from the exact depth; the exact depth scores < 1 deg on almost every
     labelled pixel, a depth tilting every plane scores far worse."""
-    import cv2
-
     from rectified_colmap.depth import DepthMap
     from rectified_colmap.training.evaluate import evaluate_planes
 
-    rng = np.random.default_rng(7)
-    scene = synth.street(rng)
-    camera = synth.pinhole_camera(320, 240, 260.0)
-    camera.camera_id = 1
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(camera)
-    (tmp_path / "s" / "images").mkdir(parents=True)
-    depth = {}
-    for i in range(2):
-        pose = synth.random_view(scene, rng, camera)
-        r = synth.render(scene, camera, pose)
-        name = f"{i}.png"
-        cv2.imwrite(str(tmp_path / "s" / "images" / name), r.image[..., ::-1])
-        depth[name] = r.depth
+    rec, renders, rng = street_views_folder(tmp_path / "s", 7, 320, 240, 260.0)
+    camera = rec.cameras[1]
+    depth = {name: r.depth for name, r in renders.items()}
+    for i, (name, r) in enumerate(renders.items()):
         v, u = np.nonzero(r.depth > 0)
         pick = rng.choice(len(v), 3000, replace=False)
         uv = np.column_stack([u[pick], v[pick]]) + 0.5
         Xc = camera.cam_from_img(uv)
         Xc = np.column_stack([Xc, np.ones(len(Xc))]) * r.depth[v[pick], u[pick]][:, None]
+        pose = r.cam_from_world
         R, t = pose.rotation.matrix(), np.asarray(pose.translation)
         Xw = (Xc - t) @ R
         im = pycolmap.Image(
