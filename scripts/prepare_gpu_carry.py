@@ -25,8 +25,6 @@ from pathlib import Path
 
 import cv2
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 
 def encoder_fp16(out: Path) -> None:
     import torch
@@ -88,9 +86,9 @@ def main(argv=None) -> int:
         encoder_fp16(enc)
     pool = out / "real_pool"
     if not any(pool.glob("*.npz")):
-        import build_real_pool
-
-        if build_real_pool.main(["--data", str(args.real_pool_data), "--output", str(pool)]):
+        script = Path(__file__).resolve().parent / "build_real_pool.py"
+        cmd = [sys.executable, str(script), "--data", str(args.real_pool_data)]
+        if subprocess.run([*cmd, "--output", str(pool)]).returncode:
             failed += 1
     tex = out / "textures"
     if not tex.is_dir():

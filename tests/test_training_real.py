@@ -421,3 +421,21 @@ def test_evaluate_outdoor_separates_trees_from_planes():
     assert res["veg_planar_gtdepth"] < 0.25 < 0.6 < res["surface_planar_gtdepth"]
     assert res["veg_planar_pred"] > 0.9
     assert res["sky_planar_gtdepth"] == 0 and res["sky_planar_pred"] > 0.9
+
+
+def test_prepare_gpu_carry_shrinks_the_facade_photos(tmp_path):
+    """scripts/prepare_gpu_carry.py: photos keep their folders, become JPEG with at most
+    max_side px (aspect kept), small ones are not enlarged, unreadable files are skipped."""
+    import cv2
+    from tests.scripts_util import load_script
+
+    carry = load_script("prepare_gpu_carry")
+    src = tmp_path / "facades"
+    (src / "brick").mkdir(parents=True)
+    cv2.imwrite(str(src / "brick" / "a.png"), np.zeros((300, 200, 3), np.uint8))
+    cv2.imwrite(str(src / "b.jpg"), np.zeros((40, 50, 3), np.uint8))
+    (src / "broken.jpg").write_bytes(b"not an image")
+    assert carry.shrink_textures(src, tmp_path / "out", 96) == 2
+    a = cv2.imread(str(tmp_path / "out" / "brick" / "a.jpg"))
+    b = cv2.imread(str(tmp_path / "out" / "b.jpg"))
+    assert a.shape[:2] == (96, 64) and b.shape[:2] == (40, 50)
