@@ -153,13 +153,13 @@ def main(argv=None) -> int:
 
     from rectified_colmap.training.data import PoolDataset, render_pool
     from rectified_colmap.training.export import export_onnx, model_spec
-    from rectified_colmap.training.losses import total_loss
     from rectified_colmap.training.model import (
         build_model,
         load_onnx_weights,
         recalibrate_batchnorm,
     )
     from rectified_colmap.training.train import (
+        eval_loss,
         lr_factor,
         make_optimizer,
         save_checkpoint,
@@ -299,25 +299,11 @@ def main(argv=None) -> int:
         )
         probe = [pds[i] for i in range(args.probe_items)]
 
-    @torch.no_grad()
-    def probe_loss() -> dict:
-        model.eval()
-        tot = {}
-        for i in range(0, len(probe), args.batch):
-            items = probe[i : i + args.batch]
-            b = {k: torch.stack([it[k] for it in items]).to(device) for k in items[0]}
-            pred_log, sky_logit = model.forward_train(b["image"])
-            loss, parts = total_loss(pred_log.float(), b, sky_logit=sky_logit, **weights)
-            for k, v in {"loss": float(loss), **parts}.items():
-                tot[k] = tot.get(k, 0.0) + v * len(items)
-        return {k: v / len(probe) for k, v in tot.items()}
-
     def log_probe(step):
         if probe is not None:
+            parts = eval_loss(model, probe, weights, args.batch, device)
             logger.info(
-                "probe step %d  %s",
-                step,
-                "  ".join(f"{k} {v:.4f}" for k, v in probe_loss().items()),
+                "probe step %d  %s", step, "  ".join(f"{k} {v:.4f}" for k, v in parts.items())
             )
 
     def save_weights(step):

@@ -363,3 +363,23 @@ def test_train_depth_script_fine_tunes_an_exported_network(tmp_path):
         assert bool(identity) == (mode == "frozen")
         assert ModelSpec.from_onnx(out / "rectsift-depth-lite0.onnx").output == "depth"
         assert torch.load(out / "last.pt", weights_only=False)["step"] == 3
+
+
+def test_eval_loss_is_the_eval_mode_training_loss(renders):
+    """eval_loss over items in one chunk is total_loss of their batch in eval mode; split
+    into chunks it is their item-weighted mean."""
+    from rectified_colmap.training.train import eval_loss
+
+    torch.manual_seed(0)
+    net = DepthNet(width=16)
+    batch = _batch(renders)
+    items = [{k: v[i] for k, v in batch.items()} for i in range(len(renders))]
+    net.eval()
+    with torch.no_grad():
+        ref, parts = losses.total_loss(net.forward_log(batch["image"]), batch)
+    got = eval_loss(net.train(), items, batch=len(items))
+    assert not net.training
+    assert np.isclose(got["loss"], float(ref), rtol=1e-5)
+    assert np.isclose(got["normal"], parts["normal"], rtol=1e-5)
+    single = [eval_loss(net, [it], batch=1)["loss"] for it in items]
+    assert np.isclose(eval_loss(net, items, batch=1)["loss"], np.mean(single), rtol=1e-6)

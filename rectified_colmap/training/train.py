@@ -64,6 +64,23 @@ def train_step(
     return float(loss.detach()), parts
 
 
+@torch.no_grad()
+def eval_loss(model, items: list[dict], weights: dict | None = None, batch: int = 8, device="cpu"):
+    """Mean losses of ``items`` (dataset items, e.g. a fixed probe set) with the network
+    in eval mode -> {"loss": ..., part: ...}, each weighted by item count."""
+    model.eval()
+    tot: dict[str, float] = {}
+    for i in range(0, len(items), batch):
+        chunk = items[i : i + batch]
+        b = {k: torch.stack([it[k] for it in chunk]).to(device) for k in chunk[0]}
+        pred_log, sky_logit = model.forward_train(b["image"])
+        sky_logit = None if sky_logit is None else sky_logit.float()
+        loss, parts = total_loss(pred_log.float(), b, sky_logit=sky_logit, **(weights or {}))
+        for k, v in {"loss": float(loss), **parts}.items():
+            tot[k] = tot.get(k, 0.0) + v * len(chunk)
+    return {k: v / len(items) for k, v in tot.items()}
+
+
 def save_checkpoint(path: str | Path, model, opt, step: int, width: int, extra: dict | None = None):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
