@@ -16,7 +16,6 @@ This module needs torch (the optional ``[train]`` extra); the runtime never impo
 from __future__ import annotations
 
 import logging
-import re
 from pathlib import Path
 
 import torch
@@ -274,13 +273,13 @@ def load_onnx_weights(path: str | Path, width: int | None = None) -> DepthNet:
     ``1 - eps``) whose bias is the folded bias, which computes the same function in eval
     mode; before fine-tuning with BatchNorm in training mode, :func:`recalibrate_batchnorm`
     (or freeze it: :func:`freeze_batchnorm`, with a small learning rate: the folded weights
-    are not normalised). Decoder convolutions keep
-    their names in the graph and are matched by name; the folded (renamed) encoder ones by
-    their order, which is the encoder's execution order. ``width``: the decoder's, read
+    are not normalised). Decoder convolutions keep their names in the graph and are
+    matched by name; the folded (renamed) encoder ones by their order, which is the
+    encoder's execution order. ``width``: the decoder's, read
     from the file by default. Shapes are checked throughout."""
     path = Path(path)
     convs = _onnx_conv_params(path)
-    named = {re.sub(r"(_fp16)$", "", n): (w, b) for n, w, b in convs}
+    named = {n.removesuffix("_fp16"): (w, b) for n, w, b in convs}
     anonymous = [(w, b) for n, w, b in convs if n.startswith("onnx::")]
     if "proj.0.weight" not in named:
         raise ValueError(f"{path}: not an exported DepthNet (no proj.0.weight)")

@@ -37,6 +37,7 @@ import pycolmap
 
 from .. import camera as cam_utils
 from ..config import VpConf
+from ..geometry import rays_from_K
 from ..conventions import (
     from_opencv_points,
     pixel_centers,
@@ -233,8 +234,7 @@ def plane_normal_map(
     X = _to_camera(points, cam_from_world)
     uv = X @ K.T
     uv = uv[:, :2] / np.where(X[:, 2:] > 1e-6, uv[:, 2:], np.nan)
-    rays = np.concatenate([pixel_centers(out_w, out_h), np.ones((out_h, out_w, 1))], -1)
-    rays = rays @ np.linalg.inv(K).T
+    rays = rays_from_K(K, out_w, out_h)
     return plane_normals_on_grid(
         uv, point_planes, _planes_facing(planes, cam_from_world), rays, **kwargs
     )
@@ -488,9 +488,9 @@ PLANE_THRESHOLD = 0.01
 facade scatter ~0.2-0.5 % of their depth; 1 % keeps shallow reliefs on their wall)."""
 
 
-def items_from_model(set_dir: Path, fit: bool = True) -> list[RealItem]:
+def items_from_model(set_dir: Path) -> list[RealItem]:
     """Items of a real-pool set with a COLMAP model (``colmap_sparse/``): the model's
-    camera, pose and the 3D points each image observes; with ``fit``, the model's planes
+    camera, pose and the 3D points each image observes, the model's planes
     (:func:`fit_planes`, inlier distance :data:`PLANE_THRESHOLD` x the median depth of the
     observations) and each observed point's plane."""
     rec = pycolmap.Reconstruction(str(set_dir / "colmap_sparse"))
@@ -503,7 +503,7 @@ def items_from_model(set_dir: Path, fit: bool = True) -> list[RealItem]:
         for im in images
     }
     planes = labels = None
-    if fit and len(xyz):
+    if len(xyz):
         depths = np.concatenate(
             [(im.cam_from_world() * xyz[seen[im.image_id]])[:, 2] for im in images]
         )
