@@ -417,42 +417,29 @@ def main(argv=None) -> int:
         res = evaluate(
             args.model, args.num, args.seed, texture_dir=args.texture_dir, threads=args.threads
         )
-    if args.real:
+    if args.real or args.york or args.outdoor > 0 or args.planes:
         from ..depth.onnx import OnnxDepthSource
 
         src = OnnxDepthSource(
             args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
         )
-        real = evaluate_real(lambda path, rgb: src(rgb), args.real)
-        real.pop("rows")
-        res.update(real)
-    if args.york:
-        from ..depth.onnx import OnnxDepthSource
 
-        src = OnnxDepthSource(
-            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
-        )
-        york = evaluate_gt_frames(lambda path, rgb: src(rgb), york_test_items(args.york))
-        york.pop("rows")
-        res.update(york)
-    if args.outdoor > 0:
-        from ..depth.onnx import OnnxDepthSource
+        def depth_for(path, rgb):
+            return src(rgb)
 
-        src = OnnxDepthSource(
-            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
-        )
-        res.update(
-            evaluate_outdoor(src, args.outdoor, args.seed + 1_000_000, texture_dir=args.texture_dir)
-        )
-    if args.planes:
-        from ..depth.onnx import OnnxDepthSource
-
-        src = OnnxDepthSource(
-            args.model, providers=["CPUExecutionProvider"], num_threads=args.threads
-        )
-        planes = evaluate_planes(lambda path, rgb: src(rgb), args.planes)
-        planes.pop("rows")
-        res.update(planes)
+        parts = []
+        if args.real:
+            parts.append(evaluate_real(depth_for, args.real))
+        if args.york:
+            parts.append(evaluate_gt_frames(depth_for, york_test_items(args.york)))
+        if args.outdoor > 0:
+            seed = args.seed + 1_000_000
+            parts.append(evaluate_outdoor(src, args.outdoor, seed, texture_dir=args.texture_dir))
+        if args.planes:
+            parts.append(evaluate_planes(depth_for, args.planes))
+        for part in parts:
+            part.pop("rows", None)
+            res.update(part)
     if args.timing:
         for t in (1, 2):
             res[f"time_1536x1024_{t}thread_s"] = time_inference(args.model, t)
