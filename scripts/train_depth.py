@@ -216,13 +216,8 @@ def main(argv=None) -> int:
     )
     logger.info("real photos: %d (fraction %.2f)", len(real_paths), ds.real_frac)
     device = torch.device(args.device)
-    model = build_model(
-        pretrained=not args.no_pretrained,
-        width=args.decoder_width,
-        sky=args.sky,
-        encoder_weights=args.encoder_weights,
-    )
-    if args.init is not None and args.init.suffix == ".onnx":
+    from_onnx = args.init is not None and args.init.suffix == ".onnx"
+    if from_onnx:  # the file has every weight: no ImageNet encoder to load first
         model = load_onnx_weights(args.init, width=args.decoder_width)
         if model.has_sky != args.sky:
             raise SystemExit(f"{args.init}: sky head {model.has_sky}, --sky {args.sky}")
@@ -230,7 +225,14 @@ def main(argv=None) -> int:
             n = min(args.recalibrate_items, len(ds))
             recalibrate_batchnorm(model, torch.stack([ds[i]["image"] for i in range(n)]))
             logger.info("BatchNorm recalibrated on %d training items", n)
-    elif args.init is not None:
+    else:
+        model = build_model(
+            pretrained=not args.no_pretrained,
+            width=args.decoder_width,
+            sky=args.sky,
+            encoder_weights=args.encoder_weights,
+        )
+    if args.init is not None and not from_onnx:
         ck = torch.load(args.init, map_location="cpu", weights_only=False)
         model.load_state_dict(ck["model"])
         logger.info("initialised from %s (step %d)", args.init, ck["step"])
