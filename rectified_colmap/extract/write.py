@@ -103,7 +103,7 @@ class Writer:
         if not self._write(out.name, feats):
             return
         self._count(out.name, feats)
-        if self.visualize is not None and out.result.planes is not None:
+        if self.visualize is not None:
             self._draw(out)
 
     def _write(self, name: str, feats: Features) -> bool:
