@@ -175,3 +175,142 @@ def test_cli_evaluate_homography(tmp_path):
     )
     text = (out / "summary.md").read_text()
     assert "| m | 2 | 2 | 1 of 1 |" in text
+
+
+# -- regions (plane pairs: only the plane's part of image 0 is governed by H) ---------------
+def test_points_in_region_exact():
+    from rectified_colmap.eval.homography import points_in_region
+
+    square = np.array([[10.0, 10], [20, 10], [20, 20], [10, 20]])
+    ell = np.array([[0.0, 0], [30, 0], [30, 10], [10, 10], [10, 30], [0, 30]])  # concave L
+    pts = np.array([[15.0, 15], [5, 5], [25, 5], [5, 25], [25, 25], [-1, 5], [15, 31]])
+    np.testing.assert_array_equal(points_in_region(pts, [square]), [1, 0, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(points_in_region(pts, [ell]), [0, 1, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(points_in_region(pts, [ell, square]), [1, 1, 1, 1, 0, 0, 0])
+    np.testing.assert_array_equal(points_in_region(pts, [ell[::-1]]), [0, 1, 1, 1, 0, 0, 0])
+    assert points_in_region(pts, None).all()
+
+
+def test_masked_visible_grid_exact():
+    H = np.array([[1.0, 0, 50], [0, 1, 0], [0, 0, 1]])  # image 0 shifted right by 50
+    rect = np.array([[40.0, 20], [170, 20], [170, 60], [40, 60]])
+    pair = HomographyPair("p", "a", "b", H, (200, 100), (200, 100), [rect], None)
+    g = visible_grid(pair, 10)
+    # x in 45..145 (inside the rectangle AND landing in image 1: x + 50 <= 200), y 25..55
+    xs, ys = np.arange(45, 150, 10), np.arange(25, 60, 10)
+    np.testing.assert_array_equal(g, np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2))
+    # the errors average over exactly those points: an estimate off by 3 px in x for x < 100
+    # only (a piecewise map cannot be a homography; use one that scales x instead)
+    S = np.array([[1.1, 0, 50], [0, 1, 0], [0, 0, 1]])
+    _, ve = homography_errors(S, pair)
+    assert ve == pytest.approx(np.mean(0.1 * g[:, 0]))
+    _, ve_all = homography_errors(S, pair_with(H))
+    assert ve_all == pytest.approx(np.mean(0.1 * visible_grid(pair_with(H), 10)[:, 0]))
+    assert ve_all < ve  # the unmasked grid has more points at small x
+
+
+def test_pair_file_without_region_is_unchanged(tmp_path):
+    H = np.array([[0.9, 0.05, 12], [-0.03, 1.1, 4], [2e-4, 1e-4, 1]])
+    item = {
+        "pair": "evd",
+        "im0": "a",
+        "im1": "b",
+        "H": to_opencv_homography(H).tolist(),
+        "size0": [200, 100],
+        "size1": [200, 100],
+        "source": "EVD",
+    }
+    f = tmp_path / "pairs.json"
+    f.write_text(json.dumps([item]))
+    (p,) = read_homography_pairs(f)
+    assert p.region0 is None and p.region1 is None and p.info == {"source": "EVD"}
+    np.testing.assert_allclose(p.H, H, atol=1e-12)
+    old = HomographyPair("evd", "a", "b", p.H, (200, 100), (200, 100))  # as before regions
+    np.testing.assert_array_equal(visible_grid(p, 10), visible_grid(old, 10))
+    # the grid of before: every grid point that H maps into image 1
+    xs, ys = np.arange(5, 200, 10), np.arange(5, 100, 10)
+    g = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    m = apply_homography(H, g)
+    inside = (m[:, 0] >= 0) & (m[:, 0] <= 200) & (m[:, 1] >= 0) & (m[:, 1] <= 100)
+    np.testing.assert_array_equal(visible_grid(p, 10), g[inside])
+    feats = synthetic_features(H)
+    a = evaluate_homography_pairs([p], {"m": feats}, HomographyConf())
+    b = evaluate_homography_pairs([old], {"m": feats}, HomographyConf())
+    assert a == b and a[0]["num_gt"] == 250
+
+
+def test_region_restricts_gt_matches_in_both_directions(tmp_path):
+    from rectified_colmap.eval.homography import points_in_region
+
+    H = np.array([[0.9, 0.05, 12], [-0.03, 1.1, 4], [2e-4, 1e-4, 1]])
+    left = [[0.0, 0.0], [99.5, 0.0], [99.5, 99.5], [0.0, 99.5]]  # OpenCV pixels: x < 100
+    f = tmp_path / "pairs.json"
+    f.write_text(
+        json.dumps(
+            [
+                {
+                    "im0": "a",
+                    "im1": "b",
+                    "H": to_opencv_homography(H).tolist(),
+                    "size0": [200, 100],
+                    "size1": [200, 100],
+                    "region0": [left],
+                    "band": "extreme",
+                }
+            ]
+        )
+    )
+    (p,) = read_homography_pairs(f)
+    np.testing.assert_allclose(p.region0[0], np.array(left) + 0.5)  # -> COLMAP pixels
+    np.testing.assert_allclose(p.region1[0], apply_homography(H, p.region0[0]))
+    assert p.info == {"band": "extreme"}
+    assert p.reverse().region0 is p.region1 and p.reverse().region1 is p.region0
+    feats = synthetic_features(H)
+    x0 = feats["a"]["keypoints"]
+    good = np.arange(len(x0)) >= 50  # synthetic_features: the first 50 are outliers
+    expect = int((good & points_in_region(x0, p.region0)).sum())
+    assert 0 < expect < 250
+    recs = evaluate_homography_pairs([p], {"m": feats}, HomographyConf())
+    for r in recs:  # 1->0: image 1's points in region1 are the same matches
+        assert r["num_gt"] == expect and r["success"] and r["num_matches"] == 300
+    full = visible_grid(pair_with(p.H), 10)  # the region (COLMAP x in 0.5..100) cuts x >= 105
+    np.testing.assert_array_equal(visible_grid(p, 10), full[full[:, 0] < 100])
+    # the reverse grid lies in region1
+    rev = visible_grid(p.reverse(), 10)
+    assert points_in_region(rev, p.region1).all() and len(rev) > 50
+
+
+def test_region_reader_errors(tmp_path):
+    f = tmp_path / "pairs.json"
+    base = {"im0": "a", "im1": "b", "H": np.eye(3).tolist(), "size0": [9, 9], "size1": [9, 9]}
+    for region, msg in (([[[0, 0], [1, 1]]], "at least 3"), ([[0, 1, 2]], "polygons")):
+        f.write_text(json.dumps([dict(base, region0=region)]))
+        with pytest.raises(ValueError, match=msg):
+            read_homography_pairs(f)
+    behind = dict(base, H=[[1, 0, 0], [0, 1, 0], [-0.2, 0, 1]], region0=[[[0, 0], [9, 0], [9, 9]]])
+    f.write_text(json.dumps([behind]))
+    with pytest.raises(ValueError, match="behind"):
+        read_homography_pairs(f)
+    explicit = dict(behind, region1=[[[0, 0], [1, 0], [1, 1]]])
+    f.write_text(json.dumps([explicit]))
+    (p,) = read_homography_pairs(f)
+    np.testing.assert_allclose(p.region1[0], np.array([[0, 0], [1, 0], [1, 1]]) + 0.5)
+
+
+def test_group_markdown_counts_pairs_and_cases():
+    from rectified_colmap.eval.homography import homography_group_markdown
+
+    def rec(pair, direction, method, success, num_gt):
+        return dict(pair=pair, direction=direction, method=method, success=success, num_gt=num_gt)
+
+    records = [
+        rec("a", "0->1", "m", True, 10),
+        rec("a", "1->0", "m", False, 4),
+        rec("b", "0->1", "m", False, 0),
+        rec("b", "1->0", "m", False, 2),
+        rec("c", "0->1", "m", True, 30),
+        rec("c", "1->0", "m", True, 40),
+    ]
+    text = homography_group_markdown(records, {"a": "x", "b": "x"})
+    assert "| x | m | 1 of 2 | 1 of 4 | 3 / 4.0 |" in text
+    assert "| - | m | 1 of 1 | 2 of 2 | 35 / 35.0 |" in text

@@ -11,6 +11,12 @@ deterministic), and its error against the ground-truth homography:
   corner error meaningless there); ``success`` = visible_err below ``success_px`` (10);
 - ``num_gt``: matches consistent with the ground truth (|H_gt x0 - x1| < ``gt_threshold``,
   3 px): this does not depend on RANSAC;
+
+A pair may give the **region** of image 0 that the homography governs (a plane of a 3D
+scene, e.g. the pairs of scripts/build_plane_pairs.py): then only grid points inside it
+count in ``visible_err``, and only matches whose image-0 point is inside it in ``num_gt``
+(matches off the plane are not wrong, H just does not say where they go). Without a region
+(EVD, HPatches: the whole image is the plane) both are as before.
 - ``num_inliers``: RANSAC inliers of the estimate.
 
 A failed estimation (fewer than 4 matches, no model, a point mapped behind the camera)
@@ -24,7 +30,11 @@ pixel frames. All errors are in pixels of image 1.
 Pair files: a JSON list of objects with ``im0``, ``im1`` (feature names), ``H`` (3x3 row
 major, image 0 -> image 1), optional ``pair`` (a label), ``size0``/``size1`` ([W, H]; else
 read from the images with ``image_root``) and ``convention`` ("opencv", the default, or
-"colmap"): shared/data/evd-dev/pairs.json is one.
+"colmap"): shared/data/evd-dev/pairs.json is one. Optional ``region0``: the region, a list
+of polygons (each a list of [x, y] image-0 pixels in the file's convention; their union,
+even-odd rule inside each), and ``region1``, the same in image 1 (else ``region0`` mapped by
+H: a homography maps a polygon in front of both cameras onto a polygon); the reverse
+direction uses ``region1``. Other keys are kept in ``HomographyPair.info``.
 """
 
 from __future__ import annotations
@@ -32,7 +42,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -55,6 +65,27 @@ class HomographyPair:
     size0: tuple[int, int]
     size1: tuple[int, int]
     """(W, H) of each image."""
+    region0: list[np.ndarray] | None = None
+    """Polygons (K_i, 2), COLMAP pixels of image 0, whose union is where H holds; None: the
+    whole image."""
+    region1: list[np.ndarray] | None = None
+    """The same region in image 1 (used by :meth:`reverse`)."""
+    info: dict = field(default_factory=dict)
+    """The pair file's other keys (e.g. a set name or a band), unused here."""
+
+    def reverse(self) -> HomographyPair:
+        """The pair from image 1 to image 0 (H^-1, regions swapped)."""
+        return HomographyPair(
+            self.name,
+            self.im1,
+            self.im0,
+            np.linalg.inv(self.H),
+            self.size1,
+            self.size0,
+            self.region1,
+            self.region0,
+            self.info,
+        )
 
 
 def colmap_homography_from_opencv(H: np.ndarray) -> np.ndarray:
@@ -65,6 +96,43 @@ def colmap_homography_from_opencv(H: np.ndarray) -> np.ndarray:
     T = np.eye(3)
     T[:2, 2] = from_opencv_points(np.zeros(2))
     return T @ np.asarray(H, np.float64) @ np.linalg.inv(T)
+
+
+def points_in_region(xy: np.ndarray, region: list[np.ndarray] | None) -> np.ndarray:
+    """(N,) bool: which of the (N, 2) points lie in the union of the polygons of ``region``
+    (each (K, 2) vertices in order, closed implicitly; even-odd rule, so a self-crossing
+    polygon's doubly covered parts are outside). None: every point. Points exactly on an
+    edge may fall either side."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    if region is None:
+        return np.ones(len(xy), bool)
+    out = np.zeros(len(xy), bool)
+    x, y = xy[:, 0:1], xy[:, 1:2]
+    for poly in region:
+        a = np.asarray(poly, np.float64).reshape(-1, 2)
+        b = np.roll(a, -1, axis=0)  # edge k: a[k] -> b[k]
+        straddle = (a[:, 1] > y) != (b[:, 1] > y)  # (N, K): the edge crosses the row y
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xc = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        out |= (straddle & (x < xc)).sum(1) % 2 == 1  # crossings to the right of the point
+    return out
+
+
+def _read_region(value, H: np.ndarray | None, conv: str, where: str) -> list[np.ndarray]:
+    """Polygons of a pair file (file convention) -> COLMAP pixels, mapped by ``H`` if given."""
+    try:
+        polys = [np.asarray(p, np.float64).reshape(-1, 2) for p in value]
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: a region is a list of polygons of [x, y] ({e})") from None
+    if not polys or any(len(p) < 3 for p in polys):
+        raise ValueError(f"{where}: a region needs polygons of at least 3 vertices")
+    if conv == "opencv":
+        polys = [from_opencv_points(p) for p in polys]
+    if H is not None:
+        polys = [apply_homography(H, p) for p in polys]
+        if not all(np.isfinite(p).all() for p in polys):
+            raise ValueError(f"{where}: region0 maps behind camera 1; give region1")
+    return polys
 
 
 def read_homography_pairs(
@@ -99,8 +167,33 @@ def read_homography_pairs(
                 sizes.append((img.shape[1], img.shape[0]))
             else:
                 raise ValueError(f"{path}: pair {k}: no {key} and no image_root to read it")
+        where = f"{path}: pair {k}"
+        region0 = region1 = None
+        if "region0" in it:
+            region0 = _read_region(it["region0"], None, conv, where)
+        if "region1" in it:
+            region1 = _read_region(it["region1"], None, conv, where)
+        if region0 is not None and region1 is None:
+            region1 = [apply_homography(H, p) for p in region0]
+            if not all(np.isfinite(p).all() for p in region1):
+                raise ValueError(f"{where}: region0 maps behind camera 1; give region1")
+        elif region1 is not None and region0 is None:
+            region0 = [apply_homography(np.linalg.inv(H), p) for p in region1]
+            if not all(np.isfinite(p).all() for p in region0):
+                raise ValueError(f"{where}: region1 maps behind camera 0; give region0")
+        known = {"pair", "im0", "im1", "H", "size0", "size1", "convention", "region0", "region1"}
         out.append(
-            HomographyPair(str(it.get("pair", f"{im0}--{im1}")), im0, im1, H, sizes[0], sizes[1])
+            HomographyPair(
+                str(it.get("pair", f"{im0}--{im1}")),
+                im0,
+                im1,
+                H,
+                sizes[0],
+                sizes[1],
+                region0,
+                region1,
+                {key: v for key, v in it.items() if key not in known},
+            )
         )
     return out
 
@@ -130,7 +223,7 @@ def corners(size: tuple[int, int]) -> np.ndarray:
 
 def visible_grid(pair: HomographyPair, step: int) -> np.ndarray:
     """(M, 2) image-0 points on a grid (``step`` px) whose ground-truth position lies in
-    image 1 (in front of its camera)."""
+    image 1 (in front of its camera) and, when the pair has one, inside its region."""
     W, H = pair.size0
     xs = np.arange(step / 2, W, step)
     ys = np.arange(step / 2, H, step)
@@ -139,6 +232,8 @@ def visible_grid(pair: HomographyPair, step: int) -> np.ndarray:
     W1, H1 = pair.size1
     with np.errstate(invalid="ignore"):
         ok = (m[:, 0] >= 0) & (m[:, 0] <= W1) & (m[:, 1] >= 0) & (m[:, 1] <= H1)
+    if pair.region0 is not None:
+        ok &= points_in_region(g, pair.region0)
     return g[ok]
 
 
@@ -184,10 +279,13 @@ def estimate_homography(
 
 def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf) -> dict:
     """One pair, one method: f0/f1 dicts with ``keypoints`` (N, 2) COLMAP px and
-    ``descriptors`` (N, D). Returns a record (plain dict)."""
+    ``descriptors`` (N, D). Returns a record (plain dict); with a region, ``num_gt`` counts
+    only matches whose image-0 point is in it."""
     m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
     x0, x1 = f0["keypoints"][m[:, 0]], f1["keypoints"][m[:, 1]]
     err = np.linalg.norm(apply_homography(pair.H, x0) - x1, axis=1) if len(m) else np.zeros(0)
+    if pair.region0 is not None and len(m):
+        err[~points_in_region(x0, pair.region0)] = np.inf
     H, inl = estimate_homography(x0, x1, conf)
     ce, ve = homography_errors(H, pair, conf.grid_step)
     return {
@@ -216,14 +314,7 @@ def evaluate_homography_pairs(
     for pair in pairs:
         cases = [(pair, "0->1")]
         if both_directions:
-            cases.append(
-                (
-                    HomographyPair(
-                        pair.name, pair.im1, pair.im0, np.linalg.inv(pair.H), pair.size1, pair.size0
-                    ),
-                    "1->0",
-                )
-            )
+            cases.append((pair.reverse(), "1->0"))
         for case, direction in cases:
             for method, src in sources.items():
                 for im in (case.im0, case.im1):
@@ -279,6 +370,33 @@ def homography_markdown(records: list[dict], conf: HomographyConf = HomographyCo
                 + (" **ok**" if r["success"] else "")
             )
         lines.append(f"| {p} | {d} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def homography_group_markdown(
+    records: list[dict], groups: Mapping[str, str], conf: HomographyConf = HomographyConf()
+) -> str:
+    """Summary per group of pairs and method: ``groups`` maps a pair name to its group (e.g.
+    a viewpoint band; pairs without one are "-"). Pairs solved in at least one direction,
+    cases (pair and direction) solved, median and mean GT-consistent matches per case."""
+    methods = list(dict.fromkeys(r["method"] for r in records))
+    names = list(dict.fromkeys(groups.get(r["pair"], "-") for r in records))
+    lines = [
+        f"| group | method | pairs solved (visible err < {conf.success_px:g} px, either "
+        "direction) | cases solved | GT-consistent per case: median / mean |",
+        "|---|---|---|---|---|",
+    ]
+    for g in names:
+        for m in methods:
+            rs = [r for r in records if r["method"] == m and groups.get(r["pair"], "-") == g]
+            pairs = {r["pair"] for r in rs}
+            solved = {r["pair"] for r in rs if r["success"]}
+            gt = [r["num_gt"] for r in rs]
+            lines.append(
+                f"| {g} | {m} | {len(solved)} of {len(pairs)} | "
+                f"{sum(r['success'] for r in rs)} of {len(rs)} | "
+                f"{np.median(gt):.0f} / {np.mean(gt):.1f} |"
+            )
     return "\n".join(lines) + "\n"
 
 
