@@ -14,8 +14,10 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
      normal n0 in image 0 and R n0 in image 1): the upper bound of rectification itself;
    - extra variants with ``--variant NAME=JSON`` (conf overrides; ``"_base": "oracle"``
      in the JSON makes it a variant of ``oracle``, else of ``rectsift``);
-2. homography evaluation in both directions of every pair (rectified_colmap.eval.homography)
-   -> records.csv, summary.md.
+2. homography evaluation in both directions of every pair (rectified_colmap.eval.homography;
+   a pair's ``region0``, where the file gives one, restricts its errors and GT-consistent
+   matches to that plane) -> records.csv, summary.md; ``--group_by KEY`` adds a summary per
+   value of that key of the pair file (e.g. ``band`` of scripts/build_plane_pairs.py).
 
 Example::
 
@@ -40,6 +42,7 @@ from rectified_colmap.config import ExtractConf, merge_conf
 from rectified_colmap.eval.homography import (
     HomographyConf,
     evaluate_homography_pairs,
+    homography_group_markdown,
     homography_markdown,
     plane_normals_from_homography,
     read_homography_pairs,
@@ -141,6 +144,12 @@ def main(argv=None) -> int:
     p.add_argument("--rect_conf", default=None, help="JSON conf overrides (rectsift, oracle)")
     p.add_argument("--max_num_features", type=int, default=None)
     p.add_argument("--focal_factor", type=float, default=1.2)
+    p.add_argument(
+        "--group_by",
+        default=None,
+        metavar="KEY",
+        help="also summarise per value of this key of the pair records (e.g. band)",
+    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     args.variants = {}
@@ -166,6 +175,9 @@ def main(argv=None) -> int:
         w.writeheader()
         w.writerows(records)
     table = homography_markdown(records, conf)
+    if args.group_by:
+        groups = {q.name: str(q.info.get(args.group_by, "-")) for q in pairs}
+        table = homography_group_markdown(records, groups, conf) + "\n" + table
     (out / "summary.md").write_text(table)
     print(table)
     return 0
