@@ -109,33 +109,22 @@ def parse_camera_params(text: str) -> list[float]:
 
 
 def infer_camera(
-    image_path: Path, model: str = DEFAULT_CAMERA_MODEL
+    image_path: Path, model: str = DEFAULT_CAMERA_MODEL, focal_factor: float = 1.2
 ) -> tuple[pycolmap.Camera, bool]:
-    """A camera from the image's EXIF as COLMAP does. Returns (camera, focal_is_prior).
+    """A camera of COLMAP's ``model`` for the image, as ``colmap feature_extractor`` makes it
+    (pycolmap.infer_camera_from_image): the focal length from EXIF, else ``focal_factor`` x
+    the larger side (COLMAP's --ImageReader.default_focal_length_factor); the principal
+    point at the image centre; the model's default extra params.
 
-    ``focal_is_prior`` is False when the focal length is COLMAP's guess (1.2 x max side).
-    """
-    cam = pycolmap.infer_camera_from_image(str(image_path))
+    Returns (camera, focal_is_prior): ``focal_is_prior`` is False when the focal length is
+    the guess."""
+    options = pycolmap.ImageReaderOptions(
+        camera_model=model, default_focal_length_factor=float(focal_factor)
+    )
+    try:
+        cam = pycolmap.infer_camera_from_image(str(image_path), options)
+    except Exception:
+        cam = None
     if cam is None:
         raise ValueError(f"{image_path}: cannot read image to infer its camera")
-    if model != model_name(cam):
-        f = cam.mean_focal_length()
-        cam = (
-            make_camera(
-                model, _default_params(model, f, cam.width, cam.height), cam.width, cam.height
-            )
-            if model
-            else cam
-        )
-    has_prior = bool(getattr(cam, "has_prior_focal_length", False))
-    return cam, has_prior
-
-
-def _default_params(model: str, f: float, w: int, h: int) -> list[float]:
-    probe = pycolmap.Camera(model=model, width=w, height=h)
-    params = [0.0] * len(probe.params)
-    for i in probe.focal_length_idxs():
-        params[i] = f
-    pp = list(probe.principal_point_idxs())
-    params[pp[0]], params[pp[1]] = w / 2.0, h / 2.0
-    return params
+    return cam, bool(cam.has_prior_focal_length)
