@@ -110,6 +110,11 @@ class DedupConf:
     keypoints as plain SIFT with the same budget; 0.5 (``rectsift-plus``): every plain
     feature that is not a twin is kept, +5-12 / +15-26 % keypoints on Strecha at 8192 /
     1024 features (docs/evaluation.md)."""
+    keep_all_plain: bool = False
+    """Every plain feature is kept, whatever the rectified ones: a plain twin always wins,
+    and where the rectified features exceed ``extra_frac`` x plain SIFT's count, the
+    rectified ones are cut (smallest scales first) instead of plain ones making room. The
+    output is then plain SIFT plus at most ``extra_frac`` more, by construction."""
 
 
 @dataclass
@@ -346,7 +351,7 @@ confs: dict[str, dict[str, Any]] = {
     "rectsift-plus": {
         "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
         "rectify": {"max_viewing_angle_deg": 86.0},
-        "dedup": {"extra_frac": 0.5, "keep_rectified_tilt_deg": 90.0, "max_plain_cosine": 0.9},
+        "dedup": {"extra_frac": 0.5, "keep_all_plain": True, "max_plain_cosine": 0.9},
         "sift": {"pool_coarse_first": False},
     },
     # no patch can pass, exact COLMAP calls: exactly plain SIFT

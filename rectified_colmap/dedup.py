@@ -143,8 +143,12 @@ def keep_preference(feats: Features, conf: DedupConf = DedupConf()) -> np.ndarra
     patch is seen there); a plain keypoint scores 1 / cos(conf.keep_rectified_tilt_deg).
     So the rectified twin wins where the patch is seen obliquely, the plain one where it is
     near-frontal (the warp changed little there, and plain SIFT is the unwarped original).
-    Between two rectified twins the more strongly rectified one wins."""
-    pref = np.full(len(feats), 1.0 / np.cos(np.deg2rad(conf.keep_rectified_tilt_deg)))
+    Between two rectified twins the more strongly rectified one wins. With
+    ``conf.keep_all_plain`` a plain keypoint always wins (inf)."""
+    plain_pref = (
+        np.inf if conf.keep_all_plain else 1.0 / np.cos(np.deg2rad(conf.keep_rectified_tilt_deg))
+    )
+    pref = np.full(len(feats), plain_pref)
     rect = feats.patch >= 0
     pref[rect] = frame_anisotropy(feats.shapes[rect])
     return pref
@@ -188,6 +192,16 @@ def keypoint_cap(plain_count: int, conf: DedupConf = DedupConf()) -> int:
     return round(plain_count * (1 + conf.extra_frac))
 
 
+def largest_scales(feats: Features, index: np.ndarray, n: int) -> np.ndarray:
+    """The ``n`` of ``feats[index]`` with the largest scales (|det A|), in index order
+    (COLMAP's own budget keeps the largest scales); all of them when there are at most n."""
+    if len(index) <= n:
+        return index
+    sv = frame_scales(feats.shapes[index])
+    order = np.argsort(-(sv[:, 0] * sv[:, 1]), kind="stable")[:n]
+    return np.sort(index[order])
+
+
 def fill_from_plain(
     rectified: Features, plain: Features, target: int, conf: DedupConf = DedupConf()
 ) -> Features:
@@ -203,7 +217,10 @@ def fill_from_plain(
     total is ``target``. So a patch that yields fewer features than its share (sky, blur)
     or whose features were twins leaves its budget to plain SIFT. Rectified features whose
     descriptor is within ``conf.max_plain_cosine`` of a kept plain feature's (anywhere in
-    the image) are dropped before plain features make room: they leave their place too."""
+    the image) are dropped before plain features make room: they leave their place too.
+
+    With ``conf.keep_all_plain`` no plain feature ever makes room: the rectified ones are
+    cut to ``target`` minus the plain count instead, smallest scales first."""
     both = Features.concatenate([rectified, plain])
     keep = near_duplicate_mask(both, conf) if conf.enabled else np.ones(len(both), bool)
     n_rect = len(rectified)
@@ -212,9 +229,8 @@ def fill_from_plain(
     if conf.max_plain_cosine < 1.0:  # no rectified feature that crowds a plain one
         cos = max_cosine(rectified.descriptors[rect_keep], plain.descriptors[plain_keep])
         rect_keep = rect_keep[cos <= conf.max_plain_cosine]
-    room = max(0, target - len(rect_keep))
-    if len(plain_keep) > room:
-        sv = frame_scales(plain.shapes[plain_keep])
-        order = np.argsort(-(sv[:, 0] * sv[:, 1]), kind="stable")[:room]
-        plain_keep = np.sort(plain_keep[order])
+    if conf.keep_all_plain:
+        rect_keep = largest_scales(rectified, rect_keep, max(0, target - len(plain_keep)))
+    else:
+        plain_keep = largest_scales(plain, plain_keep, max(0, target - len(rect_keep)))
     return Features.concatenate([plain.subset(plain_keep), rectified.subset(rect_keep)])

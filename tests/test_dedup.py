@@ -154,6 +154,44 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
         np.testing.assert_array_equal(got, expect)  # the largest remaining plain scales
 
 
+def test_keep_all_plain_is_plain_sift_plus_the_largest_rectified_scales():
+    """keep_all_plain: every plain feature stays (twins included: the plain one wins), and
+    rectified features beyond target - plain count are cut, smallest scales first; plain
+    features never make room, whatever the rectified count (issue 30: rectsift-plus lost
+    plain features when a warp gave a few more rectified ones)."""
+    rng = np.random.default_rng(7)
+    n = 100
+    xy = rng.uniform(0, 500, (n, 2))
+    plain = make_features(xy, rng.uniform(1, 10, n), np.zeros(n), random_desc(rng, n), [-1] * n)
+    tw = rng.choice(n, 10, replace=False)  # 10 oblique rectified twins of plain keypoints
+    stretch = np.diag([1.0, 0.3]) / np.sqrt(0.3)
+    twins = make_features(
+        xy[tw] + 0.2, plain.scales[tw], np.zeros(10), plain.descriptors[tw], [0] * 10, stretch
+    )
+    m = 40
+    new = make_features(
+        rng.uniform(0, 500, (m, 2)),
+        rng.uniform(1, 10, m),
+        np.zeros(m),
+        random_desc(rng, m),
+        [1] * m,
+    )
+    rect = Features.concatenate([twins, new])
+    conf = DedupConf(keep_all_plain=True, extra_frac=0.15)
+    for cap_extra in (0.15, 0.6):  # rectified below / above their cap
+        target = round(n * (1 + cap_extra))
+        out = fill_from_plain(rect, plain, target, conf)
+        np.testing.assert_array_equal(_rows_of(plain, out.subset(out.patch < 0)), np.arange(n))
+        got_new = out.subset(out.patch >= 0)
+        assert (got_new.patch == 1).all()  # the twins lost to their plain features
+        room = min(m, target - n)
+        expect = np.sort(np.argsort(-new.scales, kind="stable")[:room])
+        np.testing.assert_array_equal(_rows_of(new, got_new), expect)
+    # without keep_all_plain the oblique twins win and plain features make room
+    out = fill_from_plain(rect, plain, n, DedupConf(extra_frac=0.0))
+    assert (out.patch < 0).sum() < n
+
+
 def test_max_cosine_equals_brute_force():
     rng = np.random.default_rng(7)
     a, b = random_desc(rng, 50), random_desc(rng, 2100)
