@@ -75,13 +75,16 @@ def run_demo(
     opts.ba_refine_focal_length = False  # the renderer's intrinsics are exact
     opts.ba_refine_extra_params = False
     recs = pycolmap.incremental_mapping(db, images, output / "sparse", opts)
+    extracted = len(summary.done)
     result = {
         "images": len(names),
+        "extracted_images": extracted,
+        "reused_images": len(summary.skipped) + len(summary.copied),
+        "rectified_images": extracted - len(summary.plain) if extracted else None,
+        "extraction_ok": summary.ok,
         "registered": 0,
         "points3D": 0,
-        "max_rot_err_deg": None,
-        "extraction_ok": summary.ok,
-        "rectified_images": len(summary.done) - len(summary.plain),
+        "max_rotation_error_deg": None,
     }
     if recs:
         best = max(recs.values(), key=lambda r: r.num_reg_images())
@@ -94,5 +97,20 @@ def run_demo(
             R_est = (im.cam_from_world() * ims[ref].cam_from_world().inverse()).rotation.matrix()
             R_gt = (gt[n] * gt[ref].inverse()).rotation.matrix()
             errs.append(rotation_angle_deg(R_est.T @ R_gt))
-        result["max_rot_err_deg"] = float(max(errs))
+        result["max_rotation_error_deg"] = float(max(errs))
     return result
+
+
+RESULT_KEYS = {
+    "images": "rendered street views",
+    "extracted_images": "images extracted in this run",
+    "reused_images": "images whose features an earlier run wrote (kept; --overwrite redoes them)",
+    "rectified_images": "extracted images with at least one rectified patch (null: none "
+    "extracted in this run)",
+    "extraction_ok": "no image failed",
+    "registered": "images in the largest model pycolmap's mapper built",
+    "points3D": "3D points of that model",
+    "max_rotation_error_deg": "largest error of the recovered camera rotations relative to "
+    "one image, against the renderer's exact poses (degrees; under 1 is a good model)",
+}
+"""What each key of :func:`run_demo`'s result means (printed by the CLI under the JSON)."""

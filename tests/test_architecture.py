@@ -22,6 +22,7 @@ PKG = ROOT / "rectified_colmap"
 LEVELS = {
     "": 0,  # rectified_colmap/__init__.py
     "config": 0,
+    "errors": 0,  # one-line messages of the CLI and the scripts
     "conventions": 0,
     "geometry": 0,
     "camera": 0,

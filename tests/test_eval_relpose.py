@@ -217,7 +217,7 @@ def test_evaluate_pairs_workers_and_h5(tmp_path):
         )
 
 
-def test_cli_evaluate_pairs(tmp_path):
+def test_cli_evaluate_pairs(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     import h5py
 
@@ -259,18 +259,18 @@ def test_cli_evaluate_pairs(tmp_path):
     assert not (tmp_path / "o4").exists()
     png = (tmp_path / "out" / "success.png").read_bytes()
     assert png[:4] == b"\x89PNG" and len(png) > 5000
-    with pytest.raises(SystemExit, match="is not a file"):
-        main(
-            [
-                "evaluate-pairs",
-                "--pairs",
-                str(tmp_path / "pairs.txt"),
-                "--features",
-                f"a={tmp_path / 'missing.h5'}",
-                "--output_dir",
-                str(tmp_path / "o2"),
-            ]
-        )
+    rc = main(
+        [
+            "evaluate-pairs",
+            "--pairs",
+            str(tmp_path / "pairs.txt"),
+            "--features",
+            f"a={tmp_path / 'missing.h5'}",
+            "--output_dir",
+            str(tmp_path / "o2"),
+        ]
+    )
+    assert rc == 2 and "is not a file" in capsys.readouterr().err
 
 
 def test_svc_reader_from_model_and_pair_selection(tmp_path):

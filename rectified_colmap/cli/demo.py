@@ -32,10 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import run_demo
+    from ..demo import RESULT_KEYS, run_demo
 
     res = run_demo(args.output, args.num_images, args.depth_model, args.overwrite, args.num_workers)
     print(json.dumps(res, indent=2))
+    print("\n".join(f"  {key}: {meaning}" for key, meaning in RESULT_KEYS.items()))
     ok = res["extraction_ok"] and res["registered"] == res["images"]
     if not ok:
         logger.error("demo: not every image was registered")

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from . import methods_arg
+from . import UsageError, methods_arg
 
 logger = logging.getLogger(__name__)
 
@@ -135,11 +135,9 @@ def run_homography(args: argparse.Namespace) -> int:
         if getattr(args, key) is not None:
             setattr(conf, key, getattr(args, key))
     conf.mutual = not args.no_mutual
-    try:
-        pairs = read_homography_pairs(args.pairs, args.image_root)
-        records = evaluate_homography_pairs(pairs, methods, conf, not args.one_direction)
-    except (ValueError, KeyError, FileNotFoundError) as e:
-        raise SystemExit(str(e)) from None
+    # a bad pair file or feature file: ValueError / KeyError / OSError, one line (main)
+    pairs = read_homography_pairs(args.pairs, args.image_root)
+    records = evaluate_homography_pairs(pairs, methods, conf, not args.one_direction)
     args.output_dir.mkdir(parents=True, exist_ok=True)
     if records:
         with open(args.output_dir / "records.csv", "w", newline="") as f:
@@ -168,7 +166,7 @@ def check_matplotlib() -> None:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        raise SystemExit(
+        raise UsageError(
             "the plot needs matplotlib: pip install 'rectified-colmap[eval]' (or pass --no_plot)"
         ) from None
 
@@ -188,12 +186,8 @@ def run(args: argparse.Namespace) -> int:
     if args.max_pairs:
         pairs = pairs[: args.max_pairs]
     conf = make_conf(args)
-    try:
-        records = evaluate_pairs(
-            pairs, methods, conf, args.num_workers, progress=not args.no_progress
-        )
-    except (ValueError, KeyError, FileNotFoundError) as e:
-        raise SystemExit(str(e)) from None
+    # a bad pair file or feature file: ValueError / KeyError / OSError, one line (main)
+    records = evaluate_pairs(pairs, methods, conf, args.num_workers, progress=not args.no_progress)
     table = write_outputs(records, args.output_dir, conf, not args.no_plot, args.title)
     logger.info("%d pairs, %d methods -> %s\n%s", len(pairs), len(methods), args.output_dir, table)
     return 0

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 from pathlib import Path
+
+from . import UsageError, bool_flag_value
 
 logger = logging.getLogger(__name__)
 
@@ -84,11 +87,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--single_camera",
         "--ImageReader.single_camera",
         dest="single_camera",
-        type=int,
-        nargs="?",
-        const=1,
-        default=0,
-        help="all new images share one camera (COLMAP semantics)",
+        type=bool_flag_value,
+        default=False,
+        help="all new images share one camera (COLMAP's; alone or with 0/1)",
+    )
+    p.add_argument(
+        "--single_camera_per_folder",
+        "--ImageReader.single_camera_per_folder",
+        dest="single_camera_per_folder",
+        type=bool_flag_value,
+        default=False,
+        help="new images in the same folder share one camera (COLMAP's; 0/1)",
+    )
+    p.add_argument(
+        "--default_focal_length_factor",
+        "--ImageReader.default_focal_length_factor",
+        dest="default_focal_length_factor",
+        type=float,
+        default=1.2,
+        help="focal length guess for images without EXIF: this x the larger side "
+        "(COLMAP's; default %(default)s)",
     )
     p.add_argument(
         "--max_num_features",
@@ -148,9 +166,87 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="re-extract images that already have features, replacing them and "
         "deleting their matches (without it, outputs are only added to)",
     )
-    p.add_argument("--visualize", type=Path, help="write PNGs of planes and patches here")
-    p.add_argument("--no_progress", action="store_true")
+    p.add_argument(
+        "--visualize",
+        type=Path,
+        help="write PNGs here: keypoints (plain vs rectified), planes and rectified patches, "
+        "each with a legend (docs/usage.md)",
+    )
+    p.add_argument("--no_progress", action="store_true", help="no progress bar")
+    add_colmap_sift_options(p)
     p.set_defaults(func=run)
+
+
+COLMAP_SIFT_OPTIONS = {
+    "max_image_size": int,
+    "first_octave": int,
+    "peak_threshold": float,
+    "edge_threshold": float,
+    "max_num_orientations": int,
+    "upright": bool_flag_value,
+}
+"""COLMAP's --SiftExtraction.X options that set ``sift.X`` of the configuration."""
+
+NOT_APPLIED = {
+    "SiftExtraction.use_gpu": "SIFT runs on the CPU (pycolmap); --num_workers sets the processes",
+    "SiftExtraction.gpu_index": "SIFT runs on the CPU (pycolmap)",
+    "ImageReader.single_camera_per_image": "one camera per image is the default",
+    "descriptor_normalization": "descriptors are COLMAP's l1_root (RootSIFT), as its default",
+    "SiftExtraction.estimate_affine_shape": "affine shapes come from the rectification",
+    "SiftExtraction.domain_size_pooling": "not available in rectified SIFT",
+    "SiftExtraction.dsp_min_scale": "not available in rectified SIFT",
+    "SiftExtraction.dsp_max_scale": "not available in rectified SIFT",
+    "SiftExtraction.dsp_num_scales": "not available in rectified SIFT",
+    "SiftExtraction.num_octaves": "COLMAP's default (4) is used",
+    "SiftExtraction.octave_resolution": "COLMAP's default (3) is used",
+    "ImageReader.camera_mask_path": "not available in rectified SIFT",
+    "ImageReader.existing_camera_id": "new images get new cameras (or --single_camera)",
+}
+"""COLMAP feature_extractor options accepted and not applied, with why (said at INFO)."""
+
+
+def add_colmap_sift_options(p: argparse.ArgumentParser) -> None:
+    """COLMAP's SiftExtraction / ImageReader spellings: mapped where they have a meaning
+    here, else accepted and reported as not applied."""
+    g = p.add_argument_group(
+        "COLMAP feature_extractor options",
+        "accepted as `colmap feature_extractor` spells them; --SiftExtraction.num_threads "
+        "is --num_workers (-1: one per CPU)",
+    )
+    g.add_argument(
+        "--SiftExtraction.num_threads", dest="num_threads", type=int, help=argparse.SUPPRESS
+    )
+    for key, kind in COLMAP_SIFT_OPTIONS.items():
+        g.add_argument(
+            f"--SiftExtraction.{key}",
+            dest=f"sift_{key}",
+            type=kind,
+            default=None,
+            help=f"sets sift.{key} of --conf",
+        )
+    for option, why in NOT_APPLIED.items():
+        g.add_argument(
+            f"--{option}", dest=_not_applied_dest(option), default=None, help=f"ignored: {why}"
+        )
+
+
+def _not_applied_dest(option: str) -> str:
+    return "not_applied_" + option.replace(".", "_")
+
+
+def apply_colmap_options(args: argparse.Namespace, conf) -> None:
+    """COLMAP's options into ``conf`` and ``args.num_workers``; those that do not apply said
+    once each at INFO."""
+    for key in COLMAP_SIFT_OPTIONS:
+        value = getattr(args, f"sift_{key}", None)
+        if value is not None:
+            setattr(conf.sift, key, value)
+    if args.num_threads is not None:
+        args.num_workers = (os.cpu_count() or 1) if args.num_threads <= 0 else args.num_threads
+    for option, why in NOT_APPLIED.items():
+        value = getattr(args, _not_applied_dest(option), None)
+        if value is not None:
+            logger.info("--%s %s: not applied (%s)", option, value, why)
 
 
 def _load_conf(spec: str, max_num_features: int | None):
@@ -161,14 +257,14 @@ def _load_conf(spec: str, max_num_features: int | None):
     else:
         path = Path(spec)
         if not path.is_file():
-            raise SystemExit(
+            raise UsageError(
                 f"--conf {spec!r}: neither a named configuration "
                 f"({', '.join(confs)}) nor a JSON file"
             )
         try:
             conf = ExtractConf.from_dict(json.loads(path.read_text()))
         except (ValueError, KeyError) as e:
-            raise SystemExit(f"--conf {path}: {e}") from None
+            raise UsageError(f"--conf {path}: {e}") from None
     if max_num_features is not None:
         conf.sift.max_num_features = max_num_features
     return conf
@@ -178,8 +274,9 @@ def run(args: argparse.Namespace) -> int:
     from ..extract import extract
 
     if args.database is None and args.hloc_features is None:
-        raise SystemExit("give --database and/or --hloc_features")
+        raise UsageError("give --database and/or --hloc_features")
     conf = _load_conf(args.conf, args.max_num_features)
+    apply_colmap_options(args, conf)
     if getattr(args, "orientation", None) is not None:
         conf.vp.enabled = args.orientation != "depth"
         conf.vp.depth_free = args.orientation == "vp"
@@ -194,7 +291,9 @@ def run(args: argparse.Namespace) -> int:
         depth_model=args.depth_model,
         camera_model=args.camera_model,
         camera_params=args.camera_params,
-        single_camera=bool(args.single_camera),
+        single_camera=args.single_camera,
+        single_camera_per_folder=args.single_camera_per_folder,
+        focal_length_factor=args.default_focal_length_factor,
         conf=conf,
         num_workers=args.num_workers,
         overwrite=args.overwrite,

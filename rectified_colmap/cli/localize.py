@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from . import methods_arg
+from . import UsageError, methods_arg
 
 logger = logging.getLogger(__name__)
 
@@ -85,11 +85,11 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, key) is not None:
             setattr(conf, key, getattr(args, key))
     if not args.reference_model.is_dir():
-        raise SystemExit(f"--reference_model {args.reference_model}: not a directory")
+        raise UsageError(f"--reference_model {args.reference_model}: not a directory")
     try:
         model = pycolmap.Reconstruction(str(args.reference_model))
     except Exception as e:
-        raise SystemExit(
+        raise ValueError(
             f"--reference_model {args.reference_model}: cannot read a COLMAP model ({e})"
         ) from None
     queries = read_query_list(args.queries) if args.queries else None
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                 progress=not args.no_progress,
             )
         except (ValueError, KeyError, FileNotFoundError) as e:
-            raise SystemExit(f"{method}: {e}") from None
+            raise ValueError(f"{method}: {str(e).strip(chr(39))}") from None
         n = write_poses(out / f"poses_{method}.txt", results)
         logger.info(
             "%s: %d/%d queries localized -> %s",

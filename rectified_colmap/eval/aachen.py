@@ -379,7 +379,13 @@ def make_mini_aachen(
     from .localize import format_pose, holdout_split
 
     scene, out = Path(scene), Path(out)
-    model = pycolmap.Reconstruction(str(scene / "sparse"))
+    for what, path in (("scene folder", scene), ("posed model", scene / "sparse")):
+        if not path.is_dir():
+            raise FileNotFoundError(f"{path}: {what} not found (a scene needs images/ and sparse/)")
+    try:
+        model = pycolmap.Reconstruction(str(scene / "sparse"))
+    except ValueError as e:
+        raise ValueError(f"{scene / 'sparse'}: not a COLMAP model ({e})") from None
     by_name = {im.name: im for im in model.images.values()}
     db_names, q_names = holdout_split(sorted(by_name), holdout_every, holdout_offset)
     if num_queries is not None:

@@ -70,6 +70,8 @@ def extract(
     camera_model: str | None = None,
     camera_params: list[float] | str | None = None,
     single_camera: bool = False,
+    single_camera_per_folder: bool = False,
+    focal_length_factor: float = 1.2,
     conf: ExtractConf | dict | None = None,
     num_workers: int = 1,
     overwrite: bool = False,
@@ -79,6 +81,10 @@ def extract(
     ray_address: str | None = None,
 ) -> Summary:
     """Extract rectified SIFT for a folder of images; see the module docstring.
+
+    Cameras as COLMAP's --ImageReader options: ``camera_model`` / ``camera_params``,
+    ``single_camera``, ``single_camera_per_folder``, ``focal_length_factor`` (the focal
+    length guessed for images without EXIF, x the larger side).
 
     ``shard`` ("i/n" or (i, n)): only this job's share of the images
     (rectified_colmap.distributed.shard_names); merge the shards' outputs with
@@ -91,7 +97,9 @@ def extract(
     if database is None and hloc_features is None:
         raise ValueError("nothing to write: give a database and/or an hloc feature file")
     conf = conf if isinstance(conf, ExtractConf) else ExtractConf.from_dict(conf)
-    cameras = CameraArgs.checked(camera_model, camera_params, single_camera)
+    cameras = CameraArgs.checked(
+        camera_model, camera_params, single_camera, single_camera_per_folder, focal_length_factor
+    )
     image_dir = Path(image_dir)
     names = select_images(image_dir, image_list, shard)
     summary = Summary()

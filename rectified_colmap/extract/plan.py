@@ -20,7 +20,7 @@ import pycolmap
 
 from .. import camera as cam_utils
 from ..config import DEFAULT_CAMERA_MODEL
-from ..io.images import ImageError, image_size, list_images
+from ..io.images import IMAGE_EXTENSIONS, ImageError, image_size, list_images
 from .summary import Summary, error_message
 from .write import copy_db_to_h5, copy_h5_to_db
 
@@ -39,17 +39,27 @@ class PlannedCamera:
 
 @dataclass(frozen=True)
 class CameraArgs:
-    """How new cameras are made: COLMAP's ``model`` and ``params``, ``single`` (one camera
-    shared by all new images, COLMAP's --ImageReader.single_camera)."""
+    """How new cameras are made, as COLMAP's --ImageReader options: ``model`` and ``params``;
+    ``single``: one camera shared by all new images; ``per_folder``: one per folder;
+    ``focal_factor``: the focal length guess (x the larger side) without EXIF."""
 
     model: str | None = None
     params: list[float] | None = None
     single: bool = False
+    per_folder: bool = False
+    focal_factor: float = 1.2
 
     @classmethod
-    def checked(cls, model: str | None, params, single: bool) -> CameraArgs:
+    def checked(
+        cls,
+        model: str | None,
+        params,
+        single: bool,
+        per_folder: bool = False,
+        focal_factor: float = 1.2,
+    ) -> CameraArgs:
         """Parses 'p1,p2,...' params; one-line errors for a bad --camera_model /
-        --camera_params, before anything runs."""
+        --camera_params / focal factor, before anything runs."""
         if isinstance(params, str):
             params = cam_utils.parse_camera_params(params)
         if params and not model:
@@ -58,27 +68,50 @@ class CameraArgs:
             cam_utils.num_params(model)  # raises for an unknown model
             if params:
                 cam_utils.make_camera(model, params, 100, 100)
-        return cls(model, params, bool(single))
+        if not focal_factor > 0:
+            raise ValueError(f"--default_focal_length_factor must be positive, got {focal_factor}")
+        return cls(model, params, bool(single), bool(per_folder), float(focal_factor))
 
     def new_camera(self, path: Path) -> PlannedCamera:
-        """The camera of a new image: from the params and the header's size, or EXIF."""
+        """The camera of a new image: from the params and the header's size, else as COLMAP
+        makes it (EXIF or guessed focal length, ``model`` or COLMAP's default model)."""
         if self.model and self.params:
             w, h = image_size(path)
             return PlannedCamera(cam_utils.make_camera(self.model, self.params, w, h), True)
         if not path.is_file():
             raise ImageError("no such image file")
         try:
-            cam, has_prior = cam_utils.infer_camera(path, self.model or DEFAULT_CAMERA_MODEL)
+            cam, has_prior = cam_utils.infer_camera(
+                path, self.model or DEFAULT_CAMERA_MODEL, self.focal_factor
+            )
         except ValueError:
             raise ImageError("cannot decode image (corrupt or unsupported format)") from None
         return PlannedCamera(cam, has_prior)
+
+    def group(self, name: str) -> str | None:
+        """The key of the camera ``name`` shares (None: its own camera)."""
+        if self.single:
+            return ""
+        if self.per_folder:
+            return name.rsplit("/", 1)[0] if "/" in name else ""
+        return None
 
 
 def select_images(
     image_dir: Path, image_list: Path | list[str] | None, shard: str | tuple[int, int] | None
 ) -> list[str]:
-    """The names to process: the folder's images (or the list's), this shard's share."""
+    """The names to process: the folder's images (or the list's), this shard's share.
+    ValueError when there is nothing to process at all (an empty or wrong folder or list);
+    a shard may get no image (its outputs are then valid and empty)."""
     names = list_images(image_dir, image_list)
+    if not names:
+        if image_list is not None:
+            where = image_list if isinstance(image_list, (str, Path)) else "the image list"
+            raise ValueError(f"{where}: no image names in it")
+        raise ValueError(
+            f"{image_dir}: no images found in the folder or its subfolders "
+            f"({', '.join(sorted(IMAGE_EXTENSIONS))})"
+        )
     if shard is not None:
         from ..distributed import parse_shard, shard_names
 
@@ -125,7 +158,7 @@ class _Planner:
     def __init__(self, image_dir, db, h5, cameras: CameraArgs, overwrite, summary):
         self.image_dir, self.db, self.h5 = image_dir, db, h5
         self.args, self.overwrite, self.summary = cameras, overwrite, summary
-        self.shared: PlannedCamera | None = None
+        self.shared: dict[str, PlannedCamera] = {}  # by CameraArgs.group
         self.known: dict[int, PlannedCamera] = {}  # database cameras by id
         self.ours = db.ours() if db is not None else set()
         self.foreign_h5 = h5.foreign() if h5 is not None else set()
@@ -146,8 +179,9 @@ class _Planner:
             self.foreign_in_h5.append(name)
         if found is not None:
             known = self._db_camera(found[1])
-            if self.args.single and self.shared is None:  # resumed run
-                self.shared = known
+            group = self.args.group(name)
+            if group is not None:  # a resumed run: new images join this camera
+                self.shared.setdefault(group, known)
         if not self.overwrite:
             if (db is None or in_db) and (h5 is None or in_h5):
                 self.summary.skipped.append(name)
@@ -174,34 +208,36 @@ class _Planner:
         return self.known[camera_id]
 
     def _new_camera(self, name: str) -> PlannedCamera:
-        """The camera of an image not in the database: the shared one (same size
+        """The camera of an image not in the database: the one its group shares (same size
         required) or a new one."""
         path = self.image_dir / name
-        shared = self.shared
-        if self.args.single and shared is not None:
+        group = self.args.group(name)
+        shared = self.shared.get(group) if group is not None else None
+        if shared is not None:
             w, h = image_size(path)
             if (w, h) != (shared.camera.width, shared.camera.height):
                 raise ImageError(
-                    f"{w}x{h} differs from the single camera's "
+                    f"{w}x{h} differs from the shared camera's "
                     f"{shared.camera.width}x{shared.camera.height}"
                 )
             return shared
         camera = self.args.new_camera(path)
         if not camera.prior:
             self.guessed.append(name)
-        if self.args.single:
-            self.shared = camera
+        if group is not None:
+            self.shared[group] = camera
         return camera
 
     def report(self) -> None:
         """The plan's warnings, each once for all images; the counts into the summary."""
         if self.guessed:
             logger.warning(
-                "%d image(s) have no focal length in EXIF (%s): guessing 1.2 x the "
+                "%d image(s) have no focal length in EXIF (%s): guessing %g x the "
                 "larger side, as COLMAP does. Pass --camera_model/--camera_params "
                 "for better planes.",
                 len(self.guessed),
                 _first(self.guessed),
+                self.args.focal_factor,
             )
         for output, found in ((self.db, self.foreign_db), (self.h5, self.foreign_in_h5)):
             if found:

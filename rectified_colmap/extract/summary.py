@@ -58,13 +58,23 @@ class Summary:
         lines = [
             f"images: {n} extracted, {len(self.copied)} copied between outputs, "
             f"{len(self.skipped)} skipped (already had features), "
-            f"{len(self.failed)} failed",
-            f"keypoints: {self.num_keypoints} ({self.num_keypoints / max(n, 1):.0f} per "
-            f"image); {len(self.plain)} image(s) with plain SIFT only",
-            f"time: {self.seconds:.1f} s ({self.seconds / max(n, 1):.2f} s per image, "
-            f"{n / self.work_seconds if self.work_seconds > 0 else 0:.2f} images/s "
-            "while extracting)",
+            f"{len(self.failed)} failed"
         ]
+        if n:
+            lines += [
+                f"keypoints: {self.num_keypoints} in the {n} extracted image(s) "
+                f"({self.num_keypoints / n:.0f} per image); {len(self.plain)} of them "
+                "with plain SIFT only (no depth or no plane worth rectifying)",
+                f"time: {self.seconds:.1f} s ({self.seconds / n:.2f} s per extracted image, "
+                f"{n / self.work_seconds if self.work_seconds > 0 else 0:.2f} images/s "
+                "while extracting)",
+            ]
+        else:
+            lines.append(
+                f"nothing extracted in this run (time: {self.seconds:.1f} s); the outputs "
+                "keep the features they had"
+                + ("; --overwrite re-extracts" if self.skipped or self.copied else "")
+            )
         lines += [
             f"kept {k} image(s) with features from another extractor in {path}"
             for path, k in self.foreign.items()

@@ -1,0 +1,245 @@
+"""What a new user meets first (issue 30): COLMAP habits, mistakes and what the CLI says.
+
+Each test runs the real CLI (``rectified_colmap.cli.main``) on small rendered plane views
+without depth (plain SIFT: fast), and checks the exit code, the message and that nothing was
+written where the run stopped on a bad argument.
+"""
+
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from rectified_colmap.cli import main, normalize_bool_flags
+from rectified_colmap.config import SiftConf
+from rectified_colmap.features import detect_sift
+from tests.conftest import look_at, plane_view, textured_image
+
+K = np.array([[400.0, 0, 200], [0, 400, 150], [0, 0, 1]])
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    """Three 400x300 PNG views (no EXIF: COLMAP guesses f = 1.2 x 400) in two folders."""
+    root = tmp_path_factory.mktemp("images")
+    (root / "a").mkdir()
+    (root / "b").mkdir()
+    tex = textured_image(600, 600, 3)
+    for i, (eye, folder) in enumerate(
+        [([2.5, -4.0, 2.0], "a"), ([-2.0, -4.0, 1.5], "a"), ([0.5, -3.5, 3.5], "b")]
+    ):
+        R, t = look_at(eye, [0, 0, 0])
+        img, _ = plane_view(tex, 0.01, K, R, t, (400, 300))
+        cv2.imwrite(str(root / folder / f"{i}.png"), img)
+    return root
+
+
+def _cameras(db: Path) -> dict[str, tuple[int, np.ndarray]]:
+    """image name -> (camera id, params) of a database."""
+    with pycolmap.Database.open(str(db)) as d:
+        cams = {c.camera_id: c for c in d.read_all_cameras()}
+        return {
+            im.name: (im.camera_id, np.asarray(cams[im.camera_id].params))
+            for im in d.read_all_images()
+        }
+
+
+def _extract(images, db, *extra):
+    return main(
+        ["extract", "--database_path", str(db), "--image_path", str(images)]
+        + ["--depth_model", "none", "--no_progress", *extra]
+    )
+
+
+@pytest.mark.parametrize(
+    "model, expect",
+    [
+        ("PINHOLE", [480, 480, 200, 150]),
+        ("SIMPLE_PINHOLE", [480, 200, 150]),
+        ("OPENCV", [480, 480, 200, 150, 0, 0, 0, 0]),
+    ],
+)
+def test_camera_model_without_params_gets_colmaps_initial_params(images, tmp_path, model, expect):
+    """--camera_model alone (COLMAP's --ImageReader.camera_model habit): the guessed focal
+    length (1.2 x the larger side), the image centre and the model's defaults, as
+    `colmap feature_extractor` makes them (it crashed every image with IndexError)."""
+    db = tmp_path / "db.db"
+    assert _extract(images, db, "--ImageReader.camera_model", model) == 0
+    cams = _cameras(db)
+    assert sorted(cams) == ["a/0.png", "a/1.png", "b/2.png"]
+    for _, params in cams.values():
+        np.testing.assert_allclose(params, expect)
+    with pycolmap.Database.open(str(db)) as d:
+        assert {c.model.name for c in d.read_all_cameras()} == {model}
+
+
+def test_colmap_sift_and_image_reader_options(images, tmp_path, caplog):
+    """COLMAP's SiftExtraction / ImageReader spellings are taken: mapped (max_num_features,
+    num_threads -> workers, focal factor, one camera per folder) or said not to apply."""
+    db = tmp_path / "db.db"
+    caplog.set_level("INFO")
+    rc = _extract(
+        images,
+        db,
+        "--SiftExtraction.use_gpu",
+        "0",
+        "--SiftExtraction.num_threads",
+        "2",
+        "--SiftExtraction.max_num_features",
+        "300",
+        "--SiftExtraction.peak_threshold",
+        "0.01",
+        "--ImageReader.single_camera_per_folder",
+        "1",
+        "--ImageReader.default_focal_length_factor",
+        "2.0",
+    )
+    assert rc == 0
+    assert "--SiftExtraction.use_gpu 0: not applied" in caplog.text
+    cams = _cameras(db)
+    assert cams["a/0.png"][0] == cams["a/1.png"][0] != cams["b/2.png"][0]  # per folder
+    np.testing.assert_allclose(cams["b/2.png"][1][0], 800.0)  # 2.0 x 400
+    # the SIFT options reached COLMAP's SIFT: exactly plain SIFT with them
+    sift = SiftConf(max_num_features=300, peak_threshold=0.01)
+    with sqlite3.connect(db) as con:
+        rows = dict(
+            con.execute(
+                "SELECT i.name, k.rows FROM keypoints k JOIN images i USING (image_id)"
+            ).fetchall()
+        )
+    for name, n in rows.items():
+        gray = cv2.imread(str(images / name), cv2.IMREAD_GRAYSCALE)
+        assert n == len(detect_sift(gray, sift, 300)) < len(detect_sift(gray, SiftConf(), 300))
+
+
+def test_empty_or_wrong_image_folder_is_an_error_and_writes_nothing(tmp_path, caplog):
+    empty = tmp_path / "empty"
+    (empty / "sub").mkdir(parents=True)
+    (empty / "notes.txt").write_text("no image here")
+    db = tmp_path / "db.db"
+    assert _extract(empty, db) == 2
+    assert "no images found" in caplog.text and str(empty) in caplog.text
+    assert not db.exists()
+    assert _extract(tmp_path / "missing", db) == 2
+    assert not db.exists()
+
+
+def test_usage_errors_exit_2_in_one_line_with_the_subcommand_and_a_suggestion(
+    images, tmp_path, capsys
+):
+    # no output given: exit 2 and the subcommand's name (was exit 1, unprefixed)
+    assert main(["extract", "--image_path", str(images)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rectified-colmap extract: error: give --database")
+    assert len(err.strip().splitlines()) == 1
+    # a misspelled flag: the subcommand's message with the closest option, one line
+    assert main(["extract", "--image_path", str(images), "--max_features", "10"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rectified-colmap extract: error: unrecognized arguments")
+    assert "did you mean --max_num_features?" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "db.db").exists()
+    # a bad --conf: exit 2 before anything is written
+    db = tmp_path / "c.db"
+    assert _extract(images, db, "--conf", "nonexistent-conf") == 2
+    assert "--conf 'nonexistent-conf'" in capsys.readouterr().err and not db.exists()
+
+
+def test_log_level_after_the_subcommand_and_help_texts(images, tmp_path, capsys, caplog):
+    db = tmp_path / "db.db"
+    assert _extract(images, db, "--log_level", "WARNING") == 0
+    help_text = subprocess.run(
+        [sys.executable, "-m", "rectified_colmap.cli", "extract", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    for flag in ("--log_level", "--no_progress", "--SiftExtraction.use_gpu"):
+        i = help_text.index(flag)
+        assert len(help_text[i : i + 200].split()) > 3, f"{flag} has no help"
+
+
+@pytest.mark.parametrize(
+    "argv, expect",
+    [
+        (
+            ["merge", "--single_camera", "a.db", "b.db"],
+            ["merge", "--single_camera=1", "a.db", "b.db"],
+        ),
+        (["extract", "--single_camera", "0", "x"], ["extract", "--single_camera=0", "x"]),
+        (["--ImageReader.single_camera", "1"], ["--ImageReader.single_camera=1"]),
+        (["--single_camera"], ["--single_camera=1"]),
+    ],
+)
+def test_optional_flag_values_never_swallow_a_path(argv, expect):
+    assert normalize_bool_flags(argv) == expect
+
+
+def test_merge_single_camera_before_the_inputs(images, tmp_path):
+    """`merge --single_camera a.db b.db` (argparse took a.db as the flag's value)."""
+    names = ["a/0.png", "a/1.png", "b/2.png"]
+    for i, name in enumerate(names):
+        lst = tmp_path / f"l{i}.txt"
+        lst.write_text(name + "\n")
+        args = ["--image_list_path", str(lst), "--single_camera", "--camera_model", "PINHOLE"]
+        assert _extract(images, tmp_path / f"s{i}.db", *args) == 0
+    merged = tmp_path / "merged.db"
+    rc = main(
+        ["merge", "--single_camera", *[str(tmp_path / f"s{i}.db") for i in range(3)]]
+        + ["--database_path", str(merged)]
+    )
+    assert rc == 0
+    assert len({cam for cam, _ in _cameras(merged).values()}) == 1
+
+
+def test_summary_of_a_run_that_only_copied_or_skipped(images, tmp_path, caplog):
+    """After copying features between outputs, the summary says nothing was extracted
+    (it said `keypoints: 0 (0 per image)`, `0.00 images/s`)."""
+    db, h5 = tmp_path / "db.db", tmp_path / "f.h5"
+    assert _extract(images, db) == 0
+    caplog.clear()
+    caplog.set_level("INFO")
+    assert _extract(images, db, "--hloc_features", str(h5)) == 0
+    text = caplog.text
+    assert "3 copied between outputs" in text and "nothing extracted in this run" in text
+    assert "images/s" not in text and "0 per image" not in text
+
+
+def test_demo_result_keys_are_explained():
+    from rectified_colmap.demo import RESULT_KEYS
+
+    assert "max_rotation_error_deg" in RESULT_KEYS and "reused_images" in RESULT_KEYS
+    source = (ROOT / "rectified_colmap" / "demo.py").read_text()
+    for key in RESULT_KEYS:  # every key of the result is explained, and only those
+        assert f'"{key}"' in source.split("RESULT_KEYS")[0]
+
+
+@pytest.mark.parametrize(
+    "script, args",
+    [
+        ("aachen_hloc.py", ["--make_mini_from", "{x}", "--dataset", "{t}/d", "--outputs", "{t}/o"]),
+        ("eval_homography.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
+        ("eval_strecha.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
+        ("benchmark.py", ["--image_path", "{x}"]),
+    ],
+)
+def test_scripts_report_a_missing_input_in_one_line(tmp_path, script, args):
+    missing = tmp_path / "not-here"
+    argv = [a.format(x=missing, t=tmp_path) for a in args]
+    if script == "aachen_hloc.py":
+        pytest.importorskip("hloc", reason="aachen_hloc.py needs hloc (docs/hloc.md)")
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / script), *argv],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert "Traceback" not in out.stderr
+    last = out.stderr.strip().splitlines()[-1]
+    assert str(missing) in last and "error" in last
