@@ -30,7 +30,7 @@ repository (cvg/Hierarchical-Localization) and ``pip install -e .``, or use the 
 Examples::
 
     # mini Aachen from Strecha fountain-P11 (4 held-out queries with ground truth)
-    python scripts/aachen_hloc.py --make_mini_from ../shared/data/strecha-dev/fountain-P11 \\
+    python scripts/aachen_hloc.py --make_mini_from path/to/strecha/fountain-P11 \\
         --max_size 1024 --dataset outputs/mini_aachen --outputs outputs/mini_aachen/rectsift
 
     # Aachen v1.1
@@ -46,6 +46,8 @@ import json
 import logging
 import sys
 from pathlib import Path
+
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("aachen_hloc")
 
@@ -363,4 +365,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "aachen_hloc"))

@@ -48,6 +48,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rectified_colmap.errors import run_script
 from rectified_colmap.io.images import image_size, list_images
 
 PLAIN = """
@@ -292,4 +293,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "bench_cli"))

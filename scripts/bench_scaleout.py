@@ -12,10 +12,13 @@ the cluster started) and the whole command's wall time.
 from __future__ import annotations
 
 import argparse
+import sys
 import shutil
 import sqlite3
 import time
 from pathlib import Path
+
+from rectified_colmap.errors import run_script
 
 
 def features(db: Path) -> dict:
@@ -113,4 +116,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "bench_scaleout"))

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 import time
 from pathlib import Path
@@ -32,6 +33,7 @@ from rectified_colmap.synth.planar import look_at, plane_view, textured_image
 from rectified_colmap.synth.lines import axis_errors_deg, render_street, rot, street_camera
 from rectified_colmap.viz import draw_directions, draw_segments, save_png
 from rectified_colmap.vp.fusion import manhattan_from_image, refine_directions
+from rectified_colmap.errors import run_script
 
 
 def synthetic(conf: VpConf, num: int = 40, clutter: float = 0.3, lines: bool = True):
@@ -291,4 +293,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "bench_vp"))

@@ -55,6 +55,7 @@ from rectified_colmap.config import (  # noqa: E402
     merge_conf,
 )
 from rectified_colmap.depth import DepthMap  # noqa: E402
+from rectified_colmap.errors import run_script  # noqa: E402
 from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
 from rectified_colmap.io.images import list_images, read_image  # noqa: E402
 from rectified_colmap.pipeline import extract_image  # noqa: E402
@@ -317,4 +318,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "benchmark"))

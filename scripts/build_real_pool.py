@@ -22,6 +22,7 @@ import numpy as np
 
 from rectified_colmap.training.real import make_real_sample, real_pool_items, save_real_sample
 from rectified_colmap.training.sky import sky_pseudo_label
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("build_real_pool")
 
@@ -90,4 +91,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "build_real_pool"))

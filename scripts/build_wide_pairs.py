@@ -36,6 +36,7 @@ import pycolmap
 
 from rectified_colmap.eval.pairs import pairs_from_model, write_pairs_with_gt
 from rectified_colmap.eval.wide_pairs import wide_pairs, write_pairs_csv
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("build_wide_pairs")
 
@@ -111,4 +112,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "build_wide_pairs"))

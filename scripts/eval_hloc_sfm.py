@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rectified_colmap.errors import run_script
+
 ROOT = Path(__file__).resolve().parents[1]
 SACRE_COEUR = ROOT.parent / "shared" / "vendor" / "hloc" / "datasets" / "sacre_coeur" / "mapping"
 logger = logging.getLogger("eval_hloc_sfm")
@@ -162,4 +164,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "eval_hloc_sfm"))

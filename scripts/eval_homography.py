@@ -50,6 +50,7 @@ from rectified_colmap.eval.homography import (
 )
 from rectified_colmap.geometry import scaled_size
 from rectified_colmap.pipeline import extract_image
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("eval_homography")
 METHODS = ("sift", "rectsift", "oracle")
@@ -184,4 +185,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "eval_homography"))

@@ -45,6 +45,7 @@ from rectified_colmap.eval.pairs import read_pairs_with_gt
 from rectified_colmap.eval.relpose import evaluate_pairs
 from rectified_colmap.eval.report import paired_markdown, write_outputs
 from rectified_colmap.eval.wide_pairs import read_viewpoints
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("eval_strecha")
 
@@ -243,4 +244,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "eval_strecha"))

@@ -72,6 +72,7 @@ from rectified_colmap.eval.relpose import evaluate_pair
 from rectified_colmap.features import detect_sift
 from rectified_colmap.io.hloc_h5 import rootsift_unit
 from rectified_colmap.pipeline import extract_image
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("eval_vp")
 
@@ -613,4 +614,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "eval_vp"))

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from rectified_colmap.depth.contract import ModelSpec, attach_metadata
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("export_depth_onnx")
 OPSET = 17
@@ -261,4 +262,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "export_depth_onnx"))

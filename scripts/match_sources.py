@@ -37,6 +37,7 @@ from rectified_colmap.eval.match_sources import (
 from rectified_colmap.eval.matching import FeatureSource, parse_methods
 from rectified_colmap.eval.pairs import read_pair_list
 from rectified_colmap.eval.relpose import fundamental_from_pose
+from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("match_sources")
 
@@ -172,4 +173,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "match_sources"))

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import cv2
 
+from rectified_colmap.errors import run_script
+
 
 def encoder_fp16(out: Path) -> None:
     import torch
@@ -115,4 +117,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "prepare_gpu_carry"))

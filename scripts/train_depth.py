@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rectified_colmap.errors import run_script
+
 logger = logging.getLogger("train_depth")
 
 
@@ -381,4 +383,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "train_depth"))
