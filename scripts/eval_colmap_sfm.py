@@ -6,7 +6,7 @@ ground-truth COLMAP text model), and each method:
 
 - ``sift``: ``colmap feature_extractor`` (CPU);
 - ``rectsift``: ``rectified-colmap extract`` (default configuration and embedded network,
-  or ``--conf`` / ``--orientation``; more with ``--variant NAME=JSON``);
+  another named configuration in ``--methods``; more with ``--variant NAME=JSON|CONF``);
 
 both with the ground-truth intrinsics as one PINHOLE camera and the same budget, then
 ``colmap exhaustive_matcher`` and ``colmap mapper`` (CPU, one mapper thread: COLMAP 3.8's
@@ -35,6 +35,7 @@ import numpy as np
 import pycolmap
 
 from rectified_colmap.geometry import rotation_angle_deg
+from rectified_colmap.errors import run_script
 
 VERIFIED = (2, 3, 4, 5, 6)  # CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC
 
@@ -81,68 +82,114 @@ def best_model(sparse: Path) -> pycolmap.Reconstruction | None:
     return max(models, key=lambda r: r.num_reg_images(), default=None)
 
 
-def evaluate_scene(scene: Path, method: str, overrides: dict | None, args, out: Path) -> dict:
-    work = out / scene.name / method
-    if work.exists():
-        shutil.rmtree(work)
-    (work / "sparse").mkdir(parents=True)
-    db, log = work / "database.db", work / "log.txt"
-    gt = pycolmap.Reconstruction()
-    gt.read_text(scene / "sparse")
+def pinhole_camera_args(gt: pycolmap.Reconstruction) -> list[str]:
+    """COLMAP --ImageReader flags (also ``rectified-colmap extract``'s) for the ground
+    truth's first camera as one PINHOLE camera shared by all images."""
     cam = next(iter(gt.cameras.values()))
     params = ",".join(f"{v:.6f}" for v in cam.params)
-    images = scene / "images"
-    n = str(args.max_num_features)
-    if method == "sift":
-        t_extract = run(
+    return [
+        "--ImageReader.camera_model",
+        "PINHOLE",
+        "--ImageReader.single_camera",
+        "1",
+        "--ImageReader.camera_params",
+        params,
+    ]
+
+
+def sift_command(db: Path, images: Path, max_num_features: int, camera=()) -> list[str]:
+    """``colmap feature_extractor`` on the CPU with ``camera`` (--ImageReader flags)."""
+    return [
+        "colmap",
+        "feature_extractor",
+        "--database_path",
+        str(db),
+        "--image_path",
+        str(images),
+        *camera,
+        "--SiftExtraction.use_gpu",
+        "0",
+        "--SiftExtraction.max_num_features",
+        str(max_num_features),
+    ]
+
+
+def rectified_command(
+    db: Path, images: Path, max_num_features: int, num_workers: int, conf=(), camera=()
+) -> list[str]:
+    """``rectified-colmap extract`` with ``conf`` (see :func:`conf_args`) and ``camera``."""
+    return [
+        "rectified-colmap",
+        "extract",
+        "--database_path",
+        str(db),
+        "--image_path",
+        str(images),
+        *camera,
+        "--max_num_features",
+        str(max_num_features),
+        "--no_progress",
+        "--num_workers",
+        str(num_workers),
+        *conf,
+    ]
+
+
+def conf_args(spec: str | dict | None, work: Path) -> list[str]:
+    """``--conf`` of a rectified method: none for the default, a named configuration as it
+    is, JSON overrides (a dict or its text) through ``work/conf.json``."""
+    from rectified_colmap.config import confs
+
+    if spec is None:
+        return []
+    if isinstance(spec, str) and spec in confs:
+        return ["--conf", spec]
+    overrides = json.loads(spec) if isinstance(spec, str) else spec
+    conf_file = work / "conf.json"
+    conf_file.write_text(json.dumps(overrides))
+    return ["--conf", str(conf_file)]
+
+
+def parse_methods(methods: list[str], variants: list[str]) -> dict[str, str | None]:
+    """{method: spec}: ``sift`` (COLMAP's extractor) and ``rectsift`` (the default) with no
+    spec, other named configurations by name, ``NAME=JSON`` / ``NAME=CONF`` variants with
+    theirs. Raises ValueError (one line) for a bad variant."""
+    from rectified_colmap.config import confs
+
+    out = {m: (None if m in ("sift", "rectsift") else m) for m in methods}
+    for v in variants:
+        name, sep, spec = v.partition("=")
+        if not sep or not name or name in out:
+            raise ValueError(f"--variant {v!r}: expected a new NAME=JSON or NAME=CONF")
+        if spec not in confs:
+            try:
+                json.loads(spec)
+            except json.JSONDecodeError as e:
+                msg = f"--variant {name}: not a configuration name nor JSON ({e})"
+                raise ValueError(msg) from None
+        out[name] = spec
+    return out
+
+
+def match_and_map(
+    db: Path, images: Path, sparse: Path, log: Path, mapper=(), match=True
+) -> tuple[float, float]:
+    """``colmap exhaustive_matcher`` (CPU; skipped with ``match=False``) and ``colmap
+    mapper`` (one thread, plus the ``mapper`` flags) into ``sparse``; their wall seconds."""
+    t_match = 0.0
+    if match:
+        t_match = run(
             [
                 "colmap",
-                "feature_extractor",
+                "exhaustive_matcher",
                 "--database_path",
                 str(db),
-                "--image_path",
-                str(images),
-                "--ImageReader.camera_model",
-                "PINHOLE",
-                "--ImageReader.single_camera",
-                "1",
-                "--ImageReader.camera_params",
-                params,
-                "--SiftExtraction.use_gpu",
+                "--SiftMatching.use_gpu",
                 "0",
-                "--SiftExtraction.max_num_features",
-                n,
             ],
             log,
         )
-    else:
-        cmd = [
-            "rectified-colmap",
-            "extract",
-            "--database",
-            str(db),
-            "--image_path",
-            str(images),
-            "--camera_model",
-            "PINHOLE",
-            "--camera_params",
-            params,
-            "--single_camera",
-            "--max_num_features",
-            n,
-            "--no_progress",
-            "--num_workers",
-            str(args.num_workers),
-        ]
-        if overrides:
-            conf_file = work / "conf.json"
-            conf_file.write_text(json.dumps(overrides))
-            cmd += ["--conf", str(conf_file)]
-        t_extract = run(cmd, log)
-    t_match = run(
-        ["colmap", "exhaustive_matcher", "--database_path", str(db), "--SiftMatching.use_gpu", "0"],
-        log,
-    )
+    sparse.mkdir(parents=True, exist_ok=True)
     t_map = run(
         [
             "colmap",
@@ -152,22 +199,53 @@ def evaluate_scene(scene: Path, method: str, overrides: dict | None, args, out: 
             "--image_path",
             str(images),
             "--output_path",
-            str(work / "sparse"),
+            str(sparse),
             "--Mapper.num_threads",
             "1",
+            *mapper,
         ],
         log,
     )
+    return t_match, t_map
+
+
+def model_stats(rec: pycolmap.Reconstruction | None) -> dict:
+    """Registered images, 3D points, mean track length and reprojection error of a model
+    (zeros and NaN without one)."""
+    if rec is None:
+        return {"registered": 0, "points": 0, "track_length": 0.0, "reproj_px": float("nan")}
+    return {
+        "registered": rec.num_reg_images(),
+        "points": rec.num_points3D(),
+        "track_length": rec.compute_mean_track_length(),
+        "reproj_px": rec.compute_mean_reprojection_error(),
+    }
+
+
+def evaluate_scene(scene: Path, method: str, spec: str | None, args, out: Path) -> dict:
+    work = out / scene.name / method
+    if work.exists():
+        shutil.rmtree(work)
+    (work / "sparse").mkdir(parents=True)
+    db, log = work / "database.db", work / "log.txt"
+    gt = pycolmap.Reconstruction()
+    gt.read_text(scene / "sparse")
+    camera = pinhole_camera_args(gt)
+    images = scene / "images"
+    if method == "sift":
+        cmd = sift_command(db, images, args.max_num_features, camera)
+    else:
+        conf = conf_args(spec, work)
+        cmd = rectified_command(db, images, args.max_num_features, args.num_workers, conf, camera)
+    t_extract = run(cmd, log)
+    t_match, t_map = match_and_map(db, images, work / "sparse", log)
     matches, pairs = verified_matches(db)
     rec = best_model(work / "sparse")
     row = {
         "scene": scene.name,
         "method": method,
         "images": gt.num_reg_images(),
-        "registered": 0,
-        "points": 0,
-        "track_length": 0.0,
-        "reproj_px": float("nan"),
+        **model_stats(rec),
         "verified_matches": matches,
         "verified_pairs": pairs,
         "rot_err_med_deg": float("nan"),
@@ -177,13 +255,7 @@ def evaluate_scene(scene: Path, method: str, overrides: dict | None, args, out: 
     }
     if rec is not None:
         errs = rotation_errors(rec, gt)
-        row.update(
-            registered=rec.num_reg_images(),
-            points=rec.num_points3D(),
-            track_length=rec.compute_mean_track_length(),
-            reproj_px=rec.compute_mean_reprojection_error(),
-            rot_err_med_deg=float(np.median(errs)) if len(errs) else float("nan"),
-        )
+        row["rot_err_med_deg"] = float(np.median(errs)) if len(errs) else float("nan")
     return row
 
 
@@ -193,24 +265,28 @@ def main(argv=None):
     p.add_argument("--output_dir", type=Path, required=True)
     p.add_argument("--scenes", nargs="*")
     p.add_argument(
-        "--methods", nargs="+", default=["sift", "rectsift"], choices=["sift", "rectsift"]
+        "--methods",
+        nargs="+",
+        default=["sift", "rectsift"],
+        help="sift (colmap feature_extractor), rectsift (the default configuration) or "
+        "another named configuration of rectified-colmap",
     )
     p.add_argument(
         "--variant",
         action="append",
         default=[],
-        metavar="NAME=JSON",
-        help="an extra rectified method with these configuration overrides",
+        metavar="NAME=JSON|CONF",
+        help="an extra rectified method: conf overrides as JSON, or a named configuration",
     )
     p.add_argument("--max_num_features", type=int, default=8192)
     p.add_argument("--num_workers", type=int, default=1, help="rectified-colmap workers")
     args = p.parse_args(argv)
     if shutil.which("colmap") is None:
         sys.exit("the colmap executable is needed (e.g. apt-get install colmap)")
-    methods = {m: None for m in args.methods}
-    for v in args.variant:
-        name, _, js = v.partition("=")
-        methods[name] = json.loads(js)
+    try:
+        methods = parse_methods(args.methods, args.variant)
+    except ValueError as e:
+        p.error(str(e))
     scenes = (
         [args.data / s for s in args.scenes]
         if args.scenes
@@ -221,8 +297,8 @@ def main(argv=None):
     args.output_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for scene in scenes:
-        for method, overrides in methods.items():
-            rows.append(evaluate_scene(scene, method, overrides, args, args.output_dir))
+        for method, spec in methods.items():
+            rows.append(evaluate_scene(scene, method, spec, args, args.output_dir))
             r = rows[-1]
             print(
                 f"{scene.name} {method}: {r['registered']}/{r['images']} images, "
@@ -258,4 +334,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_script(main, "eval_colmap_sfm"))
