@@ -1,0 +1,280 @@
+"""scripts/eval_sparse_sfm.py: the pose alignment and errors, the subsets, the database
+subsets and the table exactly; one small run of the COLMAP command line on a rendered
+street (skipped without ``colmap``)."""
+
+import json
+import shutil
+import sqlite3
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+from scripts_util import load_script
+
+from rectified_colmap.io.colmap_db import create_database
+from tests.scenes import street_orbit
+
+script = load_script("eval_sparse_sfm")
+
+
+def _cameras(rng, n, centres=None):
+    """n random cam_from_world rotations and centres (random, or the given ones)."""
+    R = Rotation.random(n, random_state=rng.integers(1 << 31)).as_matrix()
+    c = rng.normal(size=(n, 3)) * [3.0, 2.0, 1.0] if centres is None else np.asarray(centres)
+    return R, c
+
+
+def _similar(R_ref, c_ref, s, R, t):
+    """The cameras in a world where ``x_ref = s R x + t``."""
+    return R_ref @ R, (c_ref - t) @ R / s
+
+
+SIM = (2.5, Rotation.from_euler("xyz", [30, -70, 110], degrees=True).as_matrix(), [4, -1, 7])
+
+
+def test_a_similarity_transform_of_the_reference_has_no_error():
+    R_ref, c_ref = _cameras(np.random.default_rng(0), 7)
+    rot, pos, how = script.pose_errors(*_similar(R_ref, c_ref, *SIM), R_ref, c_ref)
+    assert how == "centres"
+    np.testing.assert_allclose(rot, 0, atol=1e-5)
+    np.testing.assert_allclose(pos, 0, atol=1e-9)
+
+
+def test_rotation_perturbations_come_back_exactly():
+    """Each camera turned by a known angle about a random axis: its rotation error is that
+    angle, the centres (and so the alignment) stay exact."""
+    rng = np.random.default_rng(1)
+    R_ref, c_ref = _cameras(rng, 6)
+    R_est, c_est = _similar(R_ref, c_ref, *SIM)
+    angles = np.array([0.0, 1.0, 2.5, 5.0, 10.0, 40.0])
+    axes = rng.normal(size=(6, 3))
+    turn = Rotation.from_rotvec(
+        axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None], degrees=True
+    )
+    rot, pos, _ = script.pose_errors(turn.as_matrix() @ R_est, c_est, R_ref, c_ref)
+    np.testing.assert_allclose(rot, angles, atol=1e-5)
+    np.testing.assert_allclose(pos, 0, atol=1e-9)
+
+
+def test_position_perturbations_that_leave_the_fit_unchanged_come_back_exactly():
+    """Reference centres on a square, lifted by +d on one diagonal and -d on the other: the
+    least-squares similarity is the unperturbed one, so every camera is off by exactly d."""
+    a, d = 2.0, 0.3
+    square = np.array([[a, 0, 0], [-a, 0, 0], [0, a, 0], [0, -a, 0]], float)
+    R_ref, _ = _cameras(np.random.default_rng(2), 4, square)
+    R_est, c_est = _similar(R_ref, square, *SIM)
+    lifted = square + np.array([[0, 0, d], [0, 0, d], [0, 0, -d], [0, 0, -d]])
+    rot, pos, how = script.pose_errors(R_est, c_est, R_ref, lifted)
+    assert how == "centres"
+    np.testing.assert_allclose(pos, d, atol=1e-9)
+    np.testing.assert_allclose(rot, 0, atol=1e-5)
+    assert script.centre_spread(square) == pytest.approx(a)
+
+
+def test_centres_on_a_line_align_by_the_orientations():
+    """A walk on a line (or two cameras): the rotation comes from the orientations; exact for
+    a similarity transform, and turns of +-theta about one world axis give theta each."""
+    line = np.outer(np.arange(5.0), [1.0, 0.5, 0.0])
+    R_ref, _ = _cameras(np.random.default_rng(3), 5, line)
+    R_est, c_est = _similar(R_ref, line, *SIM)
+    rot, pos, how = script.pose_errors(R_est, c_est, R_ref, line)
+    assert how == "orientations"
+    np.testing.assert_allclose(rot, 0, atol=1e-5)
+    np.testing.assert_allclose(pos, 0, atol=1e-9)
+    rot2, pos2, how2 = script.pose_errors(R_est[:2], c_est[:2], R_ref[:2], line[:2])
+    assert how2 == "orientations" and np.allclose(rot2, 0, atol=1e-5)
+    # world-frame turns that average to none: R_est_i = R_ref_i P_i R with P = +-7 deg
+    P = Rotation.from_rotvec(np.outer([7, -7, 7, -7, 0], [0, 0, 1]), degrees=True).as_matrix()
+    rot3, pos3, _ = script.pose_errors(R_ref @ P @ SIM[1], c_est, R_ref, line)
+    np.testing.assert_allclose(rot3, [7, 7, 7, 7, 0], atol=1e-5)
+    np.testing.assert_allclose(pos3, 0, atol=1e-9)
+
+
+def test_nearest_view_angle():
+    R = Rotation.from_euler("z", [[0], [10], [30], [70]], degrees=True).as_matrix()
+    # nearest: 10, 10, 20, 40 -> median 15
+    assert script.nearest_neighbour_deg(R) == pytest.approx(15.0)
+    assert np.isnan(script.nearest_neighbour_deg(R[:1]))
+
+
+def test_subsets():
+    names = [f"{i:04d}.jpg" for i in (5, 3, 9, 0, 1, 2, 4, 6, 7, 8)]
+    assert script.subset_names(names, "0::1") == sorted(names)
+    assert script.subset_names(names, "0::2") == [f"{i:04d}.jpg" for i in (0, 2, 4, 6, 8)]
+    assert script.subset_names(names, "1::2") == [f"{i:04d}.jpg" for i in (1, 3, 5, 7, 9)]
+    assert script.subset_names(names, "0::3") == [f"{i:04d}.jpg" for i in (0, 3, 6, 9)]
+    assert script.subset_label("0::1") == "all" and script.subset_label("1::2") == "1::2"
+    for bad in ("2", "0:2", "a::2", "0::0", "-1::2"):
+        with pytest.raises(ValueError):
+            script.parse_subset(bad)
+
+
+def test_mapper_flags():
+    assert script.mapper_flags(["--Mapper.a", "0", "--Mapper.b=1"]) == [
+        "--Mapper.a",
+        "0",
+        "--Mapper.b",
+        "1",
+    ]
+    for bad in (["--foo", "1"], ["--Mapper.a"], ["--Mapper.a", "--Mapper.b", "1"]):
+        with pytest.raises(ValueError):
+            script.mapper_flags(bad)
+
+
+def test_keep_images(tmp_path):
+    """A subset's database: the other images, their features, matches and unused cameras go."""
+    db = tmp_path / "d.db"
+    create_database(db)
+    with sqlite3.connect(db) as con:
+        for cid in (1, 2, 3):
+            con.execute(
+                "INSERT INTO cameras VALUES (?, 1, 10, 10, ?, 0)",
+                (cid, np.zeros(4).tobytes()),
+            )
+        for iid, cid in ((1, 1), (2, 2), (3, 3), (4, 3)):
+            con.execute(
+                "INSERT INTO images (image_id, name, camera_id) VALUES (?, ?, ?)",
+                (iid, f"{iid}.jpg", cid),
+            )
+            for table in ("keypoints", "descriptors"):
+                con.execute(f"INSERT INTO {table} (image_id, rows, cols) VALUES (?, 0, 0)", (iid,))
+        con.execute("INSERT INTO matches (pair_id, rows, cols) VALUES (1, 0, 0)")
+    script.keep_images(db, ["1.jpg", "3.jpg"])
+    with sqlite3.connect(db) as con:
+        assert [r[0] for r in con.execute("SELECT name FROM images ORDER BY name")] == [
+            "1.jpg",
+            "3.jpg",
+        ]
+        assert [r[0] for r in con.execute("SELECT image_id FROM keypoints")] == [1, 3]
+        assert [r[0] for r in con.execute("SELECT image_id FROM descriptors")] == [1, 3]
+        assert [r[0] for r in con.execute("SELECT camera_id FROM cameras")] == [1, 3]
+        assert con.execute("SELECT COUNT(*) FROM matches").fetchone()[0] == 0
+
+
+def _row(method, run, registered, points, **kw):
+    r = {
+        "set": "A",
+        "subset": "all",
+        "reference": "GT",
+        "method": method,
+        "images": 10,
+        "neighbour_deg": 10.0,
+        "run": run,
+        "verified_matches": 5000 if method == "sift" else 5500,
+        "verified_pairs": 45,
+        "registered": registered,
+        "points": points,
+        "models": 1,
+        "rel_rot_err_med_deg": 0.1,
+        "rot_err_med_deg": 0.2,
+        "rot_err_max_deg": 0.5,
+        "pos_err_med": 0.01,
+        "pos_err_max": 0.02,
+    }
+    return {**r, **kw}
+
+
+def test_table():
+    rows = [
+        _row("sift", 0, 10, 1000),
+        _row("sift", 1, 10, 1000),
+        _row("rectsift", 0, 9, 1040, rot_err_max_deg=0.7),
+        _row("rectsift", 1, 10, 1060, rot_err_max_deg=0.9),
+        _row("sift", 0, 3, 300, subset="0::3", images=4, verified_matches=100, neighbour_deg=30.0),
+        _row(
+            "rectsift",
+            0,
+            0,
+            0,
+            subset="0::3",
+            images=4,
+            verified_matches=90,
+            **{
+                k: float("nan")
+                for k in (
+                    "rel_rot_err_med_deg",
+                    "rot_err_med_deg",
+                    "rot_err_max_deg",
+                    "pos_err_med",
+                    "pos_err_max",
+                )
+            },
+            models=0,
+        ),
+    ]
+    # rows come per method; the table groups them per subset, the first method first
+    rows = [rows[i] for i in (0, 1, 4, 2, 3, 5)]
+    table = script.markdown(script.summarize(rows))
+    lines = table.splitlines()
+    assert lines[2] == (
+        "| A (GT) | all | 10.0 | sift | 10/10 | 1 | 1000 | 5000 | 45 | 0.10 | 0.20 / 0.50 "
+        "| 1.00 / 2.00 |"
+    )
+    assert lines[3] == (
+        "|  |  |  | rectsift | 9.5 (9-10)/10 | 1 | 1050 (+5.0%) | 5500 (+10.0%) | 45 | 0.10 "
+        "| 0.20 / 0.80 | 1.00 / 2.00 |"
+    )
+    assert lines[4].startswith("| A (GT) | 0::3 | 30.0 | sift | 3/4 |")
+    assert lines[5] == (
+        "|  |  |  | rectsift | 0/4 | 0 | 0 (-100.0%) | 90 (-10.0%) | 45 | - | - / - | - / - |"
+    )
+    assert lines[6].startswith("| **total** | 2 subsets |  | sift | 13/14 |  | 1300 |")
+    assert lines[7].startswith("| **total** | 2 subsets |  | rectsift | 9.5/14 |  | 1050 |")
+
+
+def test_missing_data_folder_is_one_line(tmp_path, capsys):
+    rc = script.main(
+        [
+            "--output_dir",
+            str(tmp_path / "o"),
+            "--strecha",
+            str(tmp_path / "nope"),
+            "--real_pool",
+            "none",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "nope: no such folder" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.skipif(shutil.which("colmap") is None, reason="colmap command line not installed")
+def test_rendered_street_end_to_end(tmp_path):
+    """A rendered walk written as a Strecha-style scene: COLMAP SIFT and rectified-colmap's
+    plain SIFT (--conf sift, same cameras from the COLMAP database) register every image
+    with poses near the truth; every second image is a second subset."""
+    views = street_orbit(1, num=6, width=480, height=360)
+    scene = tmp_path / "data" / "street"
+    (scene / "images").mkdir(parents=True)
+    (scene / "sparse").mkdir()
+    rec = pycolmap.Reconstruction()
+    camera = views[0]["camera"]
+    camera.camera_id = 1
+    rec.add_camera_with_trivial_rig(camera)
+    for i, v in enumerate(views):
+        name = f"{i:02d}.png"
+        cv2.imwrite(str(scene / "images" / name), v["image"][..., ::-1])
+        image = pycolmap.Image(name=name, camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, v["pose"])
+    rec.write_text(str(scene / "sparse"))
+    out = tmp_path / "out"
+    args = ["--output_dir", str(out), "--strecha", str(tmp_path / "data"), "--real_pool", "none"]
+    args += ["--methods", "sift", "--variant", "plain=sift", "--subsets", "0::1", "0::2"]
+    args += ["--Mapper.ba_refine_focal_length", "0"]  # passed on to colmap mapper
+    assert script.main(args) == 0
+    rows = json.loads((out / "sparse_sfm.json").read_text())
+    assert [(r["method"], r["subset"], r["images"]) for r in rows] == [
+        ("sift", "all", 6),
+        ("sift", "0::2", 3),
+        ("plain", "all", 6),
+        ("plain", "0::2", 3),
+    ]
+    for r in rows[::2]:
+        assert r["registered"] == 6 and r["verified_pairs"] >= 5
+        assert r["rot_err_med_deg"] < 0.5 and r["pos_err_med"] < 0.02, r
+        assert r["alignment"] == "orientations"  # a walk: the centres lie on a line
+    with sqlite3.connect(out / "street" / "plain" / "features.db") as con:
+        assert con.execute("SELECT COUNT(*) FROM cameras").fetchone()[0] == 1
+    assert "| street (GT) | all |" in (out / "sparse_sfm.md").read_text()
