@@ -68,13 +68,15 @@ from eval_colmap_sfm import (  # noqa: E402
     verified_matches,
 )
 
+from rectified_colmap.errors import run_script  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 MIN_SPREAD_RATIO = 0.05  # centres flatter than this (2nd / 1st singular value): see align
 
 
-class InputError(Exception):
-    """A missing or bad input, reported in one line."""
+class InputError(ValueError):
+    """A missing or bad input (run_script reports it in one line, exit code 2)."""
 
 
 class SceneSet(NamedTuple):
@@ -561,13 +563,9 @@ def main(argv=None) -> int:
         methods = parse_methods(args.methods, args.variant)
     except ValueError as e:
         p.error(str(e))
-    try:
-        sets = find_sets(args)
-        if shutil.which("colmap") is None:
-            raise InputError("the colmap executable is needed (e.g. apt-get install colmap)")
-    except InputError as e:
-        print(f"eval_sparse_sfm: {e}", file=sys.stderr)
-        return 2
+    sets = find_sets(args)
+    if shutil.which("colmap") is None:
+        raise InputError("the colmap executable is needed (e.g. apt-get install colmap)")
     args.output_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for scene in sets:
@@ -593,4 +591,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main, "eval_sparse_sfm"))

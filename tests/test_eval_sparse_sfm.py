@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scripts_util import load_script
 
+from rectified_colmap.errors import run_script
 from rectified_colmap.io.colmap_db import create_database
 from tests.scenes import street_orbit
 
@@ -225,18 +226,11 @@ def test_table():
 
 
 def test_missing_data_folder_is_one_line(tmp_path, capsys):
-    rc = script.main(
-        [
-            "--output_dir",
-            str(tmp_path / "o"),
-            "--strecha",
-            str(tmp_path / "nope"),
-            "--real_pool",
-            "none",
-        ]
-    )
+    args = ["--output_dir", str(tmp_path / "o"), "--strecha", str(tmp_path / "nope")]
+    rc = run_script(lambda: script.main([*args, "--real_pool", "none"]), "eval_sparse_sfm")
     err = capsys.readouterr().err
-    assert rc == 2 and err.count("\n") == 1 and "nope: no such folder" in err
+    assert rc == 2 and err.count("\n") == 1 and "nope: no such folder" in err, err
+    assert err.startswith("eval_sparse_sfm: error: --strecha ")
     assert not (tmp_path / "o").exists()
 
 
