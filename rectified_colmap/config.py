@@ -412,6 +412,11 @@ class HomographyConf:
     """A pair is solved when the error over the visible overlap is below this."""
     grid_step: int = 10
     """Spacing (pixels of image 0) of the grid behind ``visible_err``."""
+    region_ransac: bool = False
+    """Estimate the homography from the matches whose image-0 point is in the pair's region
+    only (pairs without a region: all). For scenes with several planes, e.g. a facade of
+    parallel layers (scripts/build_plane_pairs.py), where RANSAC on all matches may
+    rightly pick another plane than the one the ground truth is for."""
 
 
 @dataclass

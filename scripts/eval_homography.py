@@ -17,7 +17,8 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
 2. homography evaluation in both directions of every pair (rectified_colmap.eval.homography;
    a pair's ``region0``, where the file gives one, restricts its errors and GT-consistent
    matches to that plane) -> records.csv, summary.md; ``--group_by KEY`` adds a summary per
-   value of that key of the pair file (e.g. ``band`` of scripts/build_plane_pairs.py).
+   value of that key of the pair file (e.g. ``band`` of scripts/build_plane_pairs.py);
+   ``--region_ransac`` estimates each homography from the matches in the region only.
 
 Example::
 
@@ -151,6 +152,11 @@ def main(argv=None) -> int:
         metavar="KEY",
         help="also summarise per value of this key of the pair records (e.g. band)",
     )
+    p.add_argument(
+        "--region_ransac",
+        action="store_true",
+        help="RANSAC on the matches in a pair's region only (HomographyConf.region_ransac)",
+    )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     args.variants = {}
@@ -169,7 +175,7 @@ def main(argv=None) -> int:
     out = args.output_dir
     methods = list(args.methods) + list(args.variants)
     feats = {m: extract_method(m, names, args.data, cameras, normals, args, out) for m in methods}
-    conf = HomographyConf()
+    conf = HomographyConf(region_ransac=args.region_ransac)
     records = evaluate_homography_pairs(pairs, feats, conf)
     with open(out / "records.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(records[0]))

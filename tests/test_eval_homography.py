@@ -314,3 +314,34 @@ def test_group_markdown_counts_pairs_and_cases():
     text = homography_group_markdown(records, {"a": "x", "b": "x"})
     assert "| x | m | 1 of 2 | 1 of 4 | 3 / 4.0 |" in text
     assert "| - | m | 1 of 1 | 2 of 2 | 35 / 35.0 |" in text
+
+
+def test_region_ransac_estimates_from_the_region_only():
+    """Matches of two planes: 200 of another plane on the right (x >= 100), 80 of the
+    ground-truth plane on the left, the region: RANSAC on all matches picks the other plane,
+    region_ransac the right one."""
+    rng = np.random.default_rng(3)
+    H_a = np.array([[0.9, 0.05, 12], [-0.03, 1.1, 4], [2e-4, 1e-4, 1]])
+    H_b = np.array([[1.0, 0.0, 30], [0.0, 1.0, -5], [0, 0, 1]])
+    xa = rng.uniform([5, 5], [95, 95], (80, 2))
+    xb = rng.uniform([105, 5], [195, 95], (200, 2))
+    x0 = np.vstack([xa, xb])
+    x1 = np.vstack([apply_homography(H_a, xa), apply_homography(H_b, xb)])
+    desc = rng.standard_normal((len(x0), 128)).astype(np.float32)
+    feats = {
+        "a": {"keypoints": x0, "descriptors": desc.T},
+        "b": {"keypoints": x1, "descriptors": desc.T},
+    }
+    left = [np.array([[0.0, 0], [100, 0], [100, 100], [0, 100]])]
+    pair = HomographyPair("p", "a", "b", H_a, (200, 100), (200, 100), left, None)
+    (r,) = evaluate_homography_pairs([pair], {"m": feats}, HomographyConf(), False)
+    assert r["num_gt"] == 80 and r["num_inliers"] >= 200 and not r["success"]
+    (r,) = evaluate_homography_pairs(
+        [pair], {"m": feats}, HomographyConf(region_ransac=True), False
+    )
+    assert r["num_gt"] == 80 and r["num_inliers"] == 80 and r["visible_err"] < 1e-6
+    # without a region the option changes nothing
+    whole = pair_with(H_b)
+    a = evaluate_homography_pairs([whole], {"m": feats}, HomographyConf(), False)
+    b = evaluate_homography_pairs([whole], {"m": feats}, HomographyConf(region_ransac=True), False)
+    assert a == b

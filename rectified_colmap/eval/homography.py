@@ -16,7 +16,8 @@ A pair may give the **region** of image 0 that the homography governs (a plane o
 scene, e.g. the pairs of scripts/build_plane_pairs.py): then only grid points inside it
 count in ``visible_err``, and only matches whose image-0 point is inside it in ``num_gt``
 (matches off the plane are not wrong, H just does not say where they go). Without a region
-(EVD, HPatches: the whole image is the plane) both are as before.
+(EVD, HPatches: the whole image is the plane) both are as before. ``region_ransac``
+(HomographyConf, off by default) also estimates the homography from those matches only.
 - ``num_inliers``: RANSAC inliers of the estimate.
 
 A failed estimation (fewer than 4 matches, no model, a point mapped behind the camera)
@@ -280,13 +281,18 @@ def estimate_homography(
 def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf) -> dict:
     """One pair, one method: f0/f1 dicts with ``keypoints`` (N, 2) COLMAP px and
     ``descriptors`` (N, D). Returns a record (plain dict); with a region, ``num_gt`` counts
-    only matches whose image-0 point is in it."""
+    only matches whose image-0 point is in it, and with ``conf.region_ransac`` only they
+    estimate the homography (``num_inliers`` among them)."""
     m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
     x0, x1 = f0["keypoints"][m[:, 0]], f1["keypoints"][m[:, 1]]
     err = np.linalg.norm(apply_homography(pair.H, x0) - x1, axis=1) if len(m) else np.zeros(0)
+    use = np.ones(len(m), bool)
     if pair.region0 is not None and len(m):
-        err[~points_in_region(x0, pair.region0)] = np.inf
-    H, inl = estimate_homography(x0, x1, conf)
+        inside = points_in_region(x0, pair.region0)
+        err[~inside] = np.inf
+        if conf.region_ransac:
+            use = inside
+    H, inl = estimate_homography(x0[use], x1[use], conf)
     ce, ve = homography_errors(H, pair, conf.grid_step)
     return {
         "pair": pair.name,
