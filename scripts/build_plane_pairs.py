@@ -141,6 +141,7 @@ def pair_record(set_name: str, band: str, c) -> dict:
         "angle_deg": round(c.angle_deg, 2),
         "tilt0_deg": round(c.tilt0_deg, 2),
         "tilt1_deg": round(c.tilt1_deg, 2),
+        "transition_tilt": round(c.tilt_ratio, 3),
         "plane": c.plane,
         "num_points": c.num_points,
         "h_median_err_px": round(c.median_err, 3),
@@ -187,7 +188,9 @@ truth: the homographies come from SfM poses and intrinsics (the COLMAP models in
   of the plane's keypoints seen in both images), `set`, `band` (strong: {strong} degrees,
   extreme: {extreme} degrees), `angle_deg` (angle between the two viewing directions of the
   plane's observed centroid), `tilt0_deg`/`tilt1_deg` (each view's angle from the plane
-  normal), `plane`, `num_points` (plane points seen in both images inside the region),
+  normal), `transition_tilt` (anisotropy of H's local affine map, median over the plane's
+  points: what a local feature must absorb; evd-dev's pairs have 3.6-46), `plane`,
+  `num_points` (plane points seen in both images inside the region),
   `h_median_err_px`/`h_p90_err_px` (transfer error of those points' observations under H,
   pixels of image 1), `region_frac0/1`, `trained_on` (the shipped network was trained on
   these photos), `source`.

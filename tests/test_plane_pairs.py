@@ -26,7 +26,9 @@ from rectified_colmap.eval.plane_pairs import (
     plane_region,
     region_fraction,
     select_pairs,
+    homography_jacobian,
     tilt_deg,
+    transition_tilt,
     viewpoint_change_deg,
     views_of_model,
 )
@@ -98,6 +100,38 @@ def test_viewpoint_change_and_tilt_exact():
     ) == pytest.approx(70.0)
 
 
+def test_transition_tilt_exact():
+    xy = np.array([[10.0, 20.0], [300.0, -50.0]])
+    np.testing.assert_allclose(transition_tilt(np.diag([2.0, 0.5, 1.0]), xy), [4.0, 4.0])
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    similarity = np.array([[2 * c, -2 * s_, 5], [2 * s_, 2 * c, -3], [0, 0, 1]])
+    np.testing.assert_allclose(transition_tilt(similarity, xy), [1.0, 1.0])
+    # the Jacobian of a projective map against central differences
+    H = np.array([[0.9, 0.1, 12], [-0.05, 1.2, 4], [3e-4, -2e-4, 1]])
+    e = 1e-4
+    num = np.stack(
+        [
+            (apply_homography(H, xy + [e, 0]) - apply_homography(H, xy - [e, 0])) / (2 * e),
+            (apply_homography(H, xy + [0, e]) - apply_homography(H, xy - [0, e])) / (2 * e),
+        ],
+        -1,
+    )
+    np.testing.assert_allclose(homography_jacobian(H, xy), num, rtol=1e-6)
+    # a wall seen frontally by camera 0 and at 60 degrees by camera 1, both looking at the
+    # same wall point through their principal points: 1 / cos(60) = 2 there
+    target = np.array([0.0, 0.0, 0.0])
+    R0, t0 = look_at(np.array([0.0, 0, -5]), target)
+    R1, t1 = look_at(8 * np.array([np.sin(np.pi / 3), 0, -np.cos(np.pi / 3)]), target)
+    Ka = np.array([[700.0, 0, 320], [0, 700, 240], [0, 0, 1]])  # square pixels
+    Kb = np.array([[500.0, 0, 300], [0, 500, 200], [0, 0, 1]])
+    H = plane_homography(Ka, Kb, R0, t0, R1, t1, np.array([0, 0, 1.0, 0]))
+    np.testing.assert_allclose(apply_homography(H, Ka[:2, 2][None]), Kb[:2, 2][None])
+    assert transition_tilt(H, Ka[:2, 2][None])[0] == pytest.approx(2.0)
+    # non-square pixels add their aspect ratios: (fy1 / fy0) / (fx1 cos 60 / fx0)
+    H = plane_homography(K0, K1, R0, t0, R1, t1, np.array([0, 0, 1.0, 0]))
+    assert transition_tilt(H, K0[:2, 2][None])[0] == pytest.approx((640 / 810) / (650 * 0.5 / 800))
+
+
 def test_link_components_and_hull():
     xy = np.array([[0.0, 0], [5, 0], [9, 0], [30, 0], [33, 4], [100, 100]])
     np.testing.assert_array_equal(link_components(xy, 6.0), [0, 0, 0, 1, 1, 2])
@@ -155,6 +189,8 @@ def test_pair_candidates_on_an_exact_wall():
     assert (c.name0, c.name1, c.plane) == ("im0.jpg", "im2.jpg", 0)
     assert c.angle_deg == pytest.approx(80.0, abs=1.0)  # 30 + 50 at the wall's centroid
     assert c.median_err < 1e-6 and c.num_points == 200
+    # tilted 30 and 50 degrees about the same axis: cos 30 / cos 50 = 1.35 near the centre
+    assert c.tilt_ratio == pytest.approx(np.cos(np.radians(30)) / np.cos(np.radians(50)), rel=0.05)
     assert len(c.region0) == 1
     np.testing.assert_allclose(
         apply_homography(c.H, views[0].xy[:200]), views[2].xy[:200], atol=1e-6
@@ -264,6 +300,7 @@ def test_build_plane_pairs_script(tmp_path, capsys):
     bands = sorted((r["band"], round(r["angle_deg"])) for r in records)
     assert [b for b, _ in bands] == ["extreme"] * 3 + ["strong"]
     assert all(r["h_median_err_px"] < 0.01 and r["region0"] for r in records)
+    assert all(1 < r["transition_tilt"] < 3 for r in records)
     assert "| wall | 1 | 3 |" in (out / "README.md").read_text()
     pairs = read_homography_pairs(out / "pairs.json", out)
     for p, r in zip(pairs, records):

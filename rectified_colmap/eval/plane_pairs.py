@@ -75,6 +75,25 @@ def transfer_errors(H: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray
     return np.where(np.isfinite(d), d, np.inf)
 
 
+def homography_jacobian(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) Jacobian of the map x -> H x at the (N, 2) points: the local affine map
+    between the images there (NaN where a point maps to w <= 0)."""
+    p = np.c_[np.asarray(xy, np.float64).reshape(-1, 2), np.ones(len(xy))] @ H.T
+    w = np.where(p[:, 2] > 1e-12, p[:, 2], np.nan)[:, None, None]
+    # d(p_i / w) / dx_j = (H_ij w - p_i H_2j) / w^2
+    return (H[None, :2, :2] * w - p[:, :2, None] * H[None, 2:3, :2]) / w**2
+
+
+def transition_tilt(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N,) anisotropy of the local affine map (ratio of its singular values, >= 1) at the
+    (N, 2) image-0 points: ASIFT's transition tilt, what a local feature must absorb. It is
+    ~1 when both views are tilted alike (e.g. 35 degrees on either side of the normal,
+    70 degrees apart), 1 / cos(theta) for a frontal view and one at theta; evd-dev's pairs
+    have 3.6-46 (median over their visible grids)."""
+    s = np.linalg.svd(homography_jacobian(H, xy), compute_uv=False)
+    return s[:, 0] / s[:, 1]
+
+
 # -- regions --------------------------------------------------------------------------------
 def link_components(xy: np.ndarray, link: float) -> np.ndarray:
     """(N,) int component of each of the (N, 2) points, where points closer than ``link``
@@ -187,6 +206,8 @@ class PlanePair:
     frac0: float
     """Fraction of image 0 / image 1 covered by the region."""
     frac1: float
+    tilt_ratio: float
+    """Median :func:`transition_tilt` at the plane's image-0 points in the region."""
     K0: np.ndarray = field(repr=False)
     K1: np.ndarray = field(repr=False)
     """(3, 3) intrinsics of the two images (COLMAP convention)."""
@@ -239,7 +260,8 @@ def pair_candidates(
         region = plane_region(x0_all[on], x0_all, err_all, link_frac * side, radius_frac * side)
         if not region:
             continue
-        num = int(points_in_region(x0_all[on], region).sum())
+        in_region = points_in_region(x0_all[on], region)
+        num = int(in_region.sum())
         region1 = [apply_homography(H, q) for q in region]
         f0, f1 = region_fraction(region, v0.size), region_fraction(region1, v1.size)
         if num < min_points or min(f0, f1) < min_frac:
@@ -261,6 +283,7 @@ def pair_candidates(
                 float(np.percentile(err, 90)),
                 f0,
                 f1,
+                float(np.median(transition_tilt(H, x0_all[on][in_region]))) if num else np.nan,
                 v0.K,
                 v1.K,
             )
