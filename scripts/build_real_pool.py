@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import multiprocessing as mp
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from rectified_colmap.parallel import context
 from rectified_colmap.training.real import make_real_sample, real_pool_items, save_real_sample
 from rectified_colmap.training.sky import sky_pseudo_label
 from rectified_colmap.errors import run_script
@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     ]
     failed = 0
     stats = []
-    with mp.get_context("fork").Pool(args.processes) as pool:
+    # never forked (rectified_colmap.parallel): workers import this script, under its guard
+    with context(["rectified_colmap.training.real"]).Pool(args.processes) as pool:
         for err, st in pool.imap(_one, jobs):
             if err:
                 logger.error("%s", err)

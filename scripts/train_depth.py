@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import multiprocessing as mp
 import random
 import sys
 import time
@@ -153,6 +152,7 @@ def main(argv=None) -> int:
     )
     import torch
 
+    from rectified_colmap.parallel import context
     from rectified_colmap.training.data import PoolDataset, render_pool
     from rectified_colmap.training.export import export_onnx, model_spec
     from rectified_colmap.training.model import (
@@ -190,11 +190,14 @@ def main(argv=None) -> int:
     )
     logger.info("pool: %d views in %s (%.0f s)", len(paths), args.pool_dir, time.time() - t0)
 
+    # Worker processes are never forked from this process, whose torch and OpenCV thread
+    # pools have run (rectified_colmap.parallel); they import this script, under its guard.
+    workers = context(["rectified_colmap.training.data"])
     background = None
     if args.render_background > 0:
         # keep rendering new seeds into the pool while training (killed at the end)
         more = range(seeds.stop, seeds.stop + 10**6)
-        background = mp.get_context("fork").Process(
+        background = workers.Process(
             target=render_pool,
             args=(args.pool_dir, more, args.render_width, args.render_height, args.texture_dir),
             kwargs={
@@ -258,6 +261,7 @@ def main(argv=None) -> int:
         batch_size=args.batch,
         sampler=sampler,
         num_workers=args.workers,
+        multiprocessing_context=workers if args.workers > 0 else None,
         drop_last=True,
         persistent_workers=args.workers > 0,
         prefetch_factor=4 if args.workers else None,

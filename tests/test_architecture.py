@@ -29,6 +29,7 @@ LEVELS = {
     "io": 0,
     "io.images": 0,
     "io.lock": 0,
+    "parallel": 0,  # worker processes: start method (never fork), log records sent back
     "depth": 1,  # DepthMap, sources (files, ONNX, registry, contract): raw maps
     "normals": 2,
     "planes": 3,

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..config import EvalConf
 from ..geometry import angle_between_deg, rotation_angle_deg, skew
+from ..parallel import context
 from .matching import FeatureSource, match_ratio
 from .pairs import Pair
 
@@ -230,8 +231,11 @@ def evaluate_pairs(
     records: list[dict] = []
     bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
     if num_workers > 1 and len(pairs) > 1:
-        with ProcessPoolExecutor(
-            num_workers, initializer=_init, initargs=(dict(features), conf)
+        with ProcessPoolExecutor(  # never forked: rectified_colmap.parallel
+            num_workers,
+            mp_context=context([__name__]),
+            initializer=_init,
+            initargs=(dict(features), conf),
         ) as ex:
             for recs in ex.map(_run, pairs, chunksize=max(1, len(pairs) // (8 * num_workers))):
                 records.extend(recs)

@@ -6,6 +6,11 @@ the whole extraction), find its depth, run ``pipeline.extract_image``. Runners g
 jobs: :class:`HereRunner` in this process, :class:`PoolRunner` in worker processes, and
 rectified_colmap.distributed.RayRunner on Ray actors; each is a callable
 ``runner(jobs, conf, keep)`` yielding outcomes in job order, with an optional ``close()``.
+
+Worker processes are never forked from the caller (rectified_colmap.parallel: a fork of a
+process whose OpenCV, onnxruntime or torch thread pools have run can hang): they start
+from a forkserver that has imported this module, and their log records come back with
+their outcomes, to go through the caller's handlers.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import pycolmap
 from ..config import ExtractConf
 from ..depth.registry import load_depth_source
 from ..io.images import ImageError, decode_image
+from ..parallel import capture_logs, check_not_bootstrapping, context, drain, replay
 from ..pipeline import ImageResult, extract_image
 from .summary import error_message
 
@@ -58,6 +64,9 @@ class Outcome:
     warnings: list[str] = field(default_factory=list)
     rgb: np.ndarray | None = None
     """The decoded image, kept (with the result's details) for the visualisation."""
+    logs: list[logging.LogRecord] = field(default_factory=list)
+    """A worker process's log records since its previous outcome (replayed by the
+    caller's process, then dropped)."""
 
 
 @dataclass(frozen=True)
@@ -169,6 +178,7 @@ def make_runner(init: WorkerInit, num_workers: int, ray_address: str | None):
 
         return RayRunner(ray_address, num_workers, init)  # fails here without Ray
     if num_workers > 1:
+        check_not_bootstrapping()
         return PoolRunner(num_workers, init)
     return HereRunner(init, sources)
 
@@ -187,7 +197,8 @@ class HereRunner:
 
 class PoolRunner:
     """Runs the jobs in ``num_workers`` local processes, one Worker each (a single job
-    runs here)."""
+    runs here). Workers start from a forkserver (spawn without one), never by forking
+    this process: rectified_colmap.parallel."""
 
     def __init__(self, num_workers: int, init: WorkerInit):
         self.num_workers, self.init = num_workers, init
@@ -196,25 +207,38 @@ class PoolRunner:
         if len(jobs) <= 1:
             yield from HereRunner(self.init)(jobs, conf, keep)
             return
-        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        os.environ.setdefault("OMP_NUM_THREADS", "1")  # read when the forkserver starts
+        level = logging.getLogger("rectified_colmap").getEffectiveLevel()
         with ProcessPoolExecutor(
-            self.num_workers, initializer=_start_pool_worker, initargs=(self.init,)
+            self.num_workers,
+            mp_context=context([__name__]),
+            initializer=_start_pool_worker,
+            initargs=(self.init, level),
         ) as ex:
             futures = [ex.submit(_pool_process, job, conf, keep) for job in jobs]
             for fut in futures:
-                yield fut.result()
+                out = fut.result()
+                replay(out.logs)
+                out.logs = []
+                yield out
 
 
 _pool_worker: Worker | None = None
 """The Worker of a pool process, made by the pool's initializer in that process only
 (the caller's process never sets it; its runner holds its own Worker)."""
+_pool_logs = None
+"""The pool process's captured log records (rectified_colmap.parallel.capture_logs)."""
 
 
-def _start_pool_worker(init: WorkerInit) -> None:
-    """The pool's initializer: this process's Worker."""
-    global _pool_worker
+def _start_pool_worker(init: WorkerInit, level: int) -> None:
+    """The pool's initializer: this process's log capture at the caller's ``level``, then
+    its Worker (records of its start go back with its first outcome)."""
+    global _pool_worker, _pool_logs
+    _pool_logs = capture_logs(level)
     _pool_worker = Worker(init)
 
 
 def _pool_process(job: Job, conf: ExtractConf, keep: bool) -> Outcome:
-    return _pool_worker.process(job, conf, keep)
+    out = _pool_worker.process(job, conf, keep)
+    out.logs = drain(_pool_logs)
+    return out

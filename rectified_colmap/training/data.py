@@ -21,7 +21,6 @@ square scenes, procedural or photo facades, random cameras: :func:`synth_sample`
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 from pathlib import Path
 
 import cv2
@@ -29,6 +28,7 @@ import numpy as np
 
 from .. import synth
 from ..conventions import to_opencv_homography
+from ..parallel import context
 from ..synth.render import pinhole_K
 
 logger = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ def render_pool(
         _init_worker(texture_dir, tree_prob, cloud_prob)
         paths = [_render_one(j) for j in jobs]
     else:
-        with mp.get_context("fork").Pool(
+        with context([__name__]).Pool(  # never forked: rectified_colmap.parallel
             processes, _init_worker, (texture_dir, tree_prob, cloud_prob)
         ) as pool:
             paths = []
