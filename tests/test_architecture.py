@@ -30,6 +30,7 @@ LEVELS = {
     "io.images": 0,
     "io.lock": 0,
     "parallel": 0,  # worker processes: start method (never fork), log records sent back
+    "progress": 0,  # progress bars that log lines do not break
     "depth": 1,  # DepthMap, sources (files, ONNX, registry, contract): raw maps
     "normals": 2,
     "planes": 3,

@@ -1,6 +1,7 @@
 """Image files: sizes from headers agree with decoding; listing and decoding errors."""
 
 import glob
+import os
 import struct
 from pathlib import Path
 
@@ -76,3 +77,40 @@ def test_not_images_and_listing(tmp_path):
     assert list_images(tmp_path, ["b", "a", "b"]) == ["b", "a"]
     with pytest.raises(FileNotFoundError, match="not a folder"):
         list_images(tmp_path / "nope")
+
+
+def _truncated_jpeg(path: Path) -> Path:
+    """A JPEG cut at 60 % of its bytes (no end-of-image marker)."""
+    rng = np.random.default_rng(0)
+    ok, buf = cv2.imencode(".jpg", rng.integers(0, 255, (240, 320, 3), np.uint8))
+    data = buf.tobytes()
+    path.write_bytes(data[: len(data) * 6 // 10])
+    return path
+
+
+def test_truncated_jpeg_gives_only_our_warning(tmp_path, capfd, monkeypatch):
+    """libjpeg's own 'Premature end of JPEG file' (printed by the C library on fd 2) is
+    silenced; the project's one-line warning stays. fd 2 works again afterwards, also
+    after a decode that raised, and after concurrent decodes in threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import rectified_colmap.io.images as images
+
+    cut = _truncated_jpeg(tmp_path / "cut.jpg")
+    rgb, warnings = decode_image(cut)
+    assert rgb.shape == (240, 320, 3)
+    assert warnings == ["truncated JPEG (no end-of-image marker): the missing part decodes as grey"]
+    with ThreadPoolExecutor(4) as ex:  # concurrent decodes share one redirection
+        assert all(w == warnings for _, w in ex.map(decode_image, [cut] * 16))
+
+    def failing_imread(*args):
+        raise RuntimeError("decoder crashed")
+
+    monkeypatch.setattr(images.cv2, "imread", failing_imread)
+    with pytest.raises(RuntimeError, match="decoder crashed"):
+        decode_image(cut)
+    monkeypatch.undo()
+    os.write(2, b"fd 2 is back\n")
+    err = capfd.readouterr().err
+    assert "JPEG" not in err
+    assert err == "fd 2 is back\n"

@@ -29,6 +29,7 @@ import numpy as np
 from ..config import EvalConf
 from ..geometry import angle_between_deg, rotation_angle_deg, skew
 from ..parallel import context
+from ..progress import progress_bar
 from .matching import FeatureSource, match_ratio
 from .pairs import Pair
 
@@ -222,28 +223,26 @@ def evaluate_pairs(
     """Evaluate every method on every pair -> records (pair order, then method order).
 
     ``features``: method name -> hloc feature file (or a features-by-name mapping)."""
-    from tqdm import tqdm
-
     conf = conf or EvalConf()
     if not features:
         raise ValueError("no feature files given")
     check_features(pairs, features)
     records: list[dict] = []
-    bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress)
-    if num_workers > 1 and len(pairs) > 1:
-        with ProcessPoolExecutor(  # never forked: rectified_colmap.parallel
-            num_workers,
-            mp_context=context([__name__]),
-            initializer=_init,
-            initargs=(dict(features), conf),
-        ) as ex:
-            for recs in ex.map(_run, pairs, chunksize=max(1, len(pairs) // (8 * num_workers))):
-                records.extend(recs)
+    with progress_bar(total=len(pairs), desc="pairs", unit="pair", disable=not progress) as bar:
+        if num_workers > 1 and len(pairs) > 1:
+            with ProcessPoolExecutor(  # never forked: rectified_colmap.parallel
+                num_workers,
+                mp_context=context([__name__]),
+                initializer=_init,
+                initargs=(dict(features), conf),
+            ) as ex:
+                chunk = max(1, len(pairs) // (8 * num_workers))
+                for recs in ex.map(_run, pairs, chunksize=chunk):
+                    records.extend(recs)
+                    bar.update()
+        else:
+            _init(dict(features), conf, worker=False)
+            for p in pairs:
+                records.extend(_run(p))
                 bar.update()
-    else:
-        _init(dict(features), conf, worker=False)
-        for p in pairs:
-            records.extend(_run(p))
-            bar.update()
-    bar.close()
     return records

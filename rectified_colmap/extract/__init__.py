@@ -43,11 +43,10 @@ import logging
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from ..config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf
 from ..io.colmap_db import ColmapDatabase
 from ..io.hloc_h5 import HlocFeatureWriter
+from ..progress import progress_bar
 from .plan import CameraArgs, plan, select_images
 from .run import Job, WorkerInit, make_runner
 from .summary import Summary
@@ -129,12 +128,13 @@ def extract(
 
 def _run_and_write(runner, todo: dict, image_dir: Path, conf, writer: Writer, progress) -> float:
     """Runs the planned images and writes each result as it comes (in plan order);
-    returns the seconds it took."""
+    returns the seconds it took. Log lines meanwhile go above the bar, never into its line."""
     jobs = [Job(n, image_dir.absolute() / n, c.camera) for n, c in todo.items()]
-    bar = tqdm(total=len(jobs), desc="rectified SIFT", unit="img", disable=not progress)
     t_work = time.perf_counter()
-    for out in runner(jobs, conf, writer.visualize is not None):
-        writer(out)
-        bar.update()
-    bar.close()
+    with progress_bar(
+        total=len(jobs), desc="rectified SIFT", unit="img", disable=not progress
+    ) as bar:
+        for out in runner(jobs, conf, writer.visualize is not None):
+            writer(out)
+            bar.update()
     return time.perf_counter() - t_work

@@ -6,14 +6,21 @@ the stored pixels, read from the file header for JPEG and PNG (no decode; a 24-m
 JPEG takes ~0.3 s to decode) and by decoding for other formats.
 
 Errors about one image are :class:`ImageError` with the cause only: callers that report
-per image add the image's name (rectified_colmap.extract).
+per image add the image's name (rectified_colmap.extract). A truncated JPEG is decoded with
+this module's one-line warning only: libjpeg's own ``Premature end of JPEG file``, which
+the C library inside OpenCV prints on the process's stderr, is silenced
+(:func:`c_stderr_silenced`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import struct
+import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -71,13 +78,73 @@ def decode_image(path: Path) -> tuple[np.ndarray, list[str]]:
     path = Path(path)
     if not path.is_file():
         raise ImageError("no such image file")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    truncated = path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path)
+    with c_stderr_silenced() if truncated else contextlib.nullcontext():  # libjpeg's warning
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise ImageError("cannot decode image (corrupt or unsupported format)")
     warnings = []
-    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
+    if truncated:
         warnings.append("truncated JPEG (no end-of-image marker): the missing part decodes as grey")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), warnings
+
+
+class _StderrSilencer:
+    """Points file descriptor 2 to os.devnull while at least one user is inside; the first
+    to enter redirects, the last to leave restores (a lock keeps concurrent and nested
+    uses from restoring the wrong descriptor)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._users = 0
+        self._saved: int | None = None
+
+    def enter(self) -> None:
+        with self._lock:
+            if self._users == 0:
+                self._saved = _redirect_fd2_to_devnull()
+            self._users += 1
+
+    def leave(self) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users == 0 and self._saved is not None:
+                os.dup2(self._saved, 2)
+                os.close(self._saved)
+                self._saved = None
+
+
+def _redirect_fd2_to_devnull() -> int | None:
+    """fd 2 -> os.devnull; returns a duplicate of the old fd 2 (None, and nothing changed,
+    when the process has no usable fd 2)."""
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        sys.stderr.flush()  # Python's pending output goes out before, not into devnull
+    try:
+        saved = os.dup(2)
+    except OSError:
+        return None
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+    finally:
+        os.close(devnull)
+    return saved
+
+
+_SILENCER = _StderrSilencer()
+
+
+@contextlib.contextmanager
+def c_stderr_silenced() -> Iterator[None]:
+    """While open, whatever is written to file descriptor 2 (C libraries' messages, such as
+    libjpeg's through OpenCV) is dropped; fd 2 is restored on exit, also on an exception.
+    Thread-safe (concurrent and nested uses share one redirection), but process-wide:
+    keep it around a single C call. Python's own sys.stderr is flushed first."""
+    _SILENCER.enter()
+    try:
+        yield
+    finally:
+        _SILENCER.leave()
 
 
 def _jpeg_complete(path: Path) -> bool:
