@@ -141,6 +141,35 @@ def test_sharded_runs_merged_equal_one_run(street, single, tmp_path):
     assert merge_feature_files(merged / "f.h5", [p / "f.h5" for p in shards]).added == []
 
 
+def test_an_empty_shard_leaves_valid_outputs_that_merge(street, single, tmp_path):
+    """More shards than images: some shard gets no image. It still leaves a valid, empty
+    database and hloc file, and merging every shard's outputs (what a job-array script
+    lists) gives exactly one run's outputs."""
+    _, names, _ = street
+    count = NUM_IMAGES + 1
+    empty = [i for i in range(count) if not shard_names(names, i, count)]
+    assert empty  # pigeonhole
+    shards = []
+    for i in range(count):
+        out = tmp_path / f"s{i}"
+        assert _extract(street, out, shard=f"{i}/{count}").ok
+        shards.append(out)
+    for i in empty:
+        assert hloc_h5.validate(shards[i] / "f.h5") == 0
+        assert db_dump(shards[i] / "db.db")["#ids"] == []
+    merged = tmp_path / "merged"
+    args = ["merge", "--single_camera", "--database_path", str(merged / "db.db")]
+    args += ["--hloc_features", str(merged / "f.h5")]
+    assert main(args + [str(p / f) for p in shards for f in ("db.db", "f.h5")]) == 0
+    assert_same_outputs(single, merged)
+    # empty inputs alone merge into valid, empty outputs
+    nothing = tmp_path / "nothing"
+    assert merge_feature_files(nothing / "f.h5", [shards[i] / "f.h5" for i in empty]).added == []
+    assert merge_databases(nothing / "db.db", [shards[i] / "db.db" for i in empty]).added == []
+    assert hloc_h5.validate(nothing / "f.h5") == 0
+    assert db_dump(nothing / "db.db")["#ids"] == []
+
+
 def test_merge_keeps_per_image_cameras_and_refuses_conflicts(street, tmp_path, caplog):
     images, names, params = street
     kw = dict(depth_model="none", single_camera=False)

@@ -114,6 +114,8 @@ def extract(
     h5 = db = None
     try:
         h5 = HlocFeatureWriter(hloc_features) if hloc_features is not None else None
+        if h5 is not None:  # exists from now on, as the database: also with no image
+            h5.create_if_missing()
         db = ColmapDatabase(database) if database is not None else None
         todo = plan(names, image_dir, db, h5, cameras, overwrite, summary)
         writer = Writer(db, h5, todo, summary, overwrite, visualize)

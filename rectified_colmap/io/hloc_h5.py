@@ -24,6 +24,8 @@ target, then the staging files are deleted. A kill -9 at any moment therefore le
 target either as before or fully merged, and the staged work is merged on the next open.
 One writer per target at a time: a writer holds ``<target>.lock`` (rectified_colmap.io.lock)
 from its creation to :meth:`HlocFeatureWriter.close`; a second process waits for it.
+:meth:`HlocFeatureWriter.create_if_missing` makes a valid file with no image (the same
+atomic replace), so that a run with nothing to write (an empty shard) leaves one too.
 """
 
 from __future__ import annotations
@@ -201,6 +203,17 @@ def merge_staged(path: Path) -> int:
     return len(staged)
 
 
+def create_empty(path: Path) -> None:
+    """A valid feature file with no image at ``path`` (which must not exist; the caller
+    holds its lock), made as ``<path>.merging`` and atomically renamed."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".merging")
+    h5py.File(tmp, "w").close()
+    _fsync_file(tmp)
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
 class HlocFeatureWriter:
     """Write Features of many images into an hloc feature file, crash-safely.
 
@@ -244,6 +257,14 @@ class HlocFeatureWriter:
 
     def has(self, name: str) -> bool:
         return name in self._names or name in self._staged
+
+    def create_if_missing(self) -> None:
+        """Make the target a valid feature file with no image when it does not exist yet
+        (images written later are merged into it); an existing file is left as it is."""
+        if self._closed:
+            raise RuntimeError(f"{self.path}: writer is closed")
+        if not self.path.exists():
+            create_empty(self.path)
 
     def foreign(self) -> set[str]:
         """Names of the images in the file whose features another extractor wrote."""

@@ -10,6 +10,8 @@ Rules:
 - Conflicts are refused before anything is written: the same image name with different
   features in two inputs, or in an input and the target (identical copies are taken once;
   an image already in the target with the same features is left as it is).
+- Empty inputs (a shard that got no image: a database and a feature file with no image)
+  are accepted and add nothing; a target with no image to add is still created, valid.
 - Inputs must not hold matches yet (their pair ids would be meaningless in the target):
   merge shards first, then match.
 - Cameras are renumbered; each input camera row stays one camera in the target. Shards of
@@ -176,6 +178,7 @@ def merge_feature_files(target: Path | str, inputs: list[Path | str]) -> MergeSu
                     conflicts.setdefault(name, [str(path)]).append(str(target))
         if conflicts:
             raise _conflict_error(conflicts)
+        out.create_if_missing()  # also when the inputs hold no image (empty shards)
         already = set(summary.already)
         for name in sorted(sources):
             if name not in already:
