@@ -243,3 +243,30 @@ def test_scripts_report_a_missing_input_in_one_line(tmp_path, script, args):
     assert "Traceback" not in out.stderr
     last = out.stderr.strip().splitlines()[-1]
     assert str(missing) in last and "error" in last
+
+
+def test_mask_path_drops_keypoints_where_the_mask_is_black(images, tmp_path, caplog):
+    """COLMAP's --ImageReader.mask_path: masks/<name>.png, no features where black; an
+    image without a mask file is not masked; a mask of the wrong size fails its image."""
+    masks = tmp_path / "masks"
+    (masks / "a").mkdir(parents=True)
+    m = np.full((300, 400), 255, np.uint8)
+    m[:, :200] = 0  # the left half is masked
+    cv2.imwrite(str(masks / "a" / "0.png.png"), m)
+    cv2.imwrite(str(masks / "a" / "1.png.png"), m[:100])  # wrong size
+    h5_masked, h5_plain = tmp_path / "m.h5", tmp_path / "p.h5"
+    args = ["--ImageReader.mask_path", str(masks), "--hloc_features"]
+    assert _extract(images, tmp_path / "m.db", *args, str(h5_masked)) == 1
+    assert _extract(images, tmp_path / "p.db", "--hloc_features", str(h5_plain)) == 0
+    from rectified_colmap.io import hloc_h5
+
+    assert hloc_h5.list_names(h5_masked) == ["a/0.png", "b/2.png"]  # a/1.png failed
+    assert "a/1.png: mask" in caplog.text and "400x100 but the image is 400x300" in caplog.text
+    masked, plain = hloc_h5.read(h5_masked, "a/0.png"), hloc_h5.read(h5_plain, "a/0.png")
+    keep = np.floor(plain["keypoints"][:, 0]) >= 200  # read() gives COLMAP pixels
+    np.testing.assert_array_equal(masked["keypoints"], plain["keypoints"][keep])
+    assert 0 < keep.sum() < len(keep)
+    np.testing.assert_array_equal(
+        hloc_h5.read(h5_masked, "b/2.png")["keypoints"],
+        hloc_h5.read(h5_plain, "b/2.png")["keypoints"],
+    )

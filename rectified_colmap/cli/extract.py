@@ -100,6 +100,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="new images in the same folder share one camera (COLMAP's; 0/1)",
     )
     p.add_argument(
+        "--mask_path",
+        "--ImageReader.mask_path",
+        dest="mask_path",
+        type=Path,
+        help="COLMAP's keypoint masks: MASKS/sub/0001.jpg.png for sub/0001.jpg; no features "
+        "where the mask is black (images without a mask file are not masked)",
+    )
+    p.add_argument(
         "--default_focal_length_factor",
         "--ImageReader.default_focal_length_factor",
         dest="default_focal_length_factor",
@@ -294,6 +302,7 @@ def run(args: argparse.Namespace) -> int:
         single_camera=args.single_camera,
         single_camera_per_folder=args.single_camera_per_folder,
         focal_length_factor=args.default_focal_length_factor,
+        mask_path=args.mask_path,
         conf=conf,
         num_workers=args.num_workers,
         overwrite=args.overwrite,

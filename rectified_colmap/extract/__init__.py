@@ -71,6 +71,7 @@ def extract(
     single_camera: bool = False,
     single_camera_per_folder: bool = False,
     focal_length_factor: float = 1.2,
+    mask_path: Path | None = None,
     conf: ExtractConf | dict | None = None,
     num_workers: int = 1,
     overwrite: bool = False,
@@ -83,7 +84,9 @@ def extract(
 
     Cameras as COLMAP's --ImageReader options: ``camera_model`` / ``camera_params``,
     ``single_camera``, ``single_camera_per_folder``, ``focal_length_factor`` (the focal
-    length guessed for images without EXIF, x the larger side).
+    length guessed for images without EXIF, x the larger side). ``mask_path``: COLMAP's
+    keypoint masks, ``mask_path/<name>.png`` (no features where black; images without one
+    are not masked).
 
     ``shard`` ("i/n" or (i, n)): only this job's share of the images
     (rectified_colmap.distributed.shard_names); merge the shards' outputs with
@@ -101,6 +104,8 @@ def extract(
     )
     image_dir = Path(image_dir)
     names = select_images(image_dir, image_list, shard)
+    if mask_path is not None and not Path(mask_path).is_dir():
+        raise FileNotFoundError(f"{mask_path}: mask path is not a folder")
     summary = Summary()
     t_start = time.perf_counter()
     if depth_path is None and depth_model in (None, "none") and not conf.vp.depth_free:
@@ -119,7 +124,10 @@ def extract(
         db = ColmapDatabase(database) if database is not None else None
         todo = plan(names, image_dir, db, h5, cameras, overwrite, summary)
         writer = Writer(db, h5, todo, summary, overwrite, visualize)
-        summary.work_seconds = _run_and_write(runner, todo, image_dir, conf, writer, progress)
+        masks = Path(mask_path).absolute() if mask_path is not None else None
+        summary.work_seconds = _run_and_write(
+            runner, todo, image_dir, masks, conf, writer, progress
+        )
     finally:
         for closable in (runner, h5, db):
             if hasattr(closable, "close"):
@@ -128,10 +136,15 @@ def extract(
     return summary
 
 
-def _run_and_write(runner, todo: dict, image_dir: Path, conf, writer: Writer, progress) -> float:
+def _run_and_write(
+    runner, todo: dict, image_dir: Path, masks: Path | None, conf, writer: Writer, progress
+) -> float:
     """Runs the planned images and writes each result as it comes (in plan order);
     returns the seconds it took. Log lines meanwhile go above the bar, never into its line."""
-    jobs = [Job(n, image_dir.absolute() / n, c.camera) for n, c in todo.items()]
+    jobs = [
+        Job(n, image_dir.absolute() / n, c.camera, None if masks is None else masks / f"{n}.png")
+        for n, c in todo.items()
+    ]
     t_work = time.perf_counter()
     with progress_bar(
         total=len(jobs), desc="rectified SIFT", unit="img", disable=not progress

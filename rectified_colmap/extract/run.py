@@ -28,7 +28,7 @@ import pycolmap
 
 from ..config import ExtractConf
 from ..depth.registry import load_depth_source
-from ..io.images import ImageError, decode_image
+from ..io.images import ImageError, decode_image, keypoints_on_mask, read_mask
 from ..parallel import capture_logs, check_not_bootstrapping, context, drain, replay
 from ..pipeline import ImageResult, extract_image
 from .summary import error_message
@@ -50,6 +50,8 @@ class Job(NamedTuple):
     path: Path
     """Absolute: workers may run elsewhere (another process, a Ray node)."""
     camera: pycolmap.Camera
+    mask: Path | None = None
+    """COLMAP's keypoint mask file (absolute; it may not exist: then no mask)."""
 
 
 @dataclass
@@ -136,6 +138,11 @@ class Worker:
             depth, out.origin = self._depth(rgb, job, out.warnings)
             rng = np.random.default_rng(_seed(job.name))
             result = extract_image(rgb, job.camera, depth, conf, rng)
+            if job.mask is not None:
+                mask = read_mask(job.mask, (W, H))
+                if mask is not None:  # COLMAP: no features where the mask is black
+                    feats = result.features
+                    result.features = feats.subset(keypoints_on_mask(feats.keypoints, mask))
         except Exception as e:  # reported per image; the run goes on
             logger.debug("failure on %s", job.name, exc_info=True)
             out.error, out.origin = error_message(e), "none"

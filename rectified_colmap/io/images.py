@@ -89,6 +89,36 @@ def decode_image(path: Path) -> tuple[np.ndarray, list[str]]:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), warnings
 
 
+def read_mask(path: Path, size: tuple[int, int]) -> np.ndarray | None:
+    """COLMAP's keypoint mask (--ImageReader.mask_path): (H, W) bool, False where the file is
+    black (0: no features there); None when there is no such file (COLMAP: no mask).
+
+    Raises ImageError for a mask that cannot be decoded or whose size differs from the
+    image's ``size`` (W, H)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    if mask is None:
+        raise ImageError(f"mask {path}: cannot decode it")
+    if (mask.shape[1], mask.shape[0]) != tuple(size):
+        raise ImageError(
+            f"mask {path} is {mask.shape[1]}x{mask.shape[0]} but the image is {size[0]}x{size[1]}"
+        )
+    return mask > 0
+
+
+def keypoints_on_mask(xy: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N,) bool: COLMAP-convention keypoints (N, 2) on a True pixel of ``mask`` (H, W), the
+    pixel being (int(x), int(y)) as COLMAP's MaskKeypoints reads it; outside: False."""
+    col = np.floor(xy[:, 0]).astype(np.int64)
+    row = np.floor(xy[:, 1]).astype(np.int64)
+    inside = (col >= 0) & (row >= 0) & (col < mask.shape[1]) & (row < mask.shape[0])
+    out = np.zeros(len(xy), bool)
+    out[inside] = mask[row[inside], col[inside]]
+    return out
+
+
 class _StderrSilencer:
     """Points file descriptor 2 to os.devnull while at least one user is inside; the first
     to enter redirects, the last to leave restores (a lock keeps concurrent and nested
