@@ -28,6 +28,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from itertools import combinations
 from pathlib import Path
 
@@ -52,9 +53,23 @@ def run(cmd: list[str], log: Path) -> float:
     return time.perf_counter() - t0
 
 
+@contextmanager
+def connect(database: Path):
+    """A connection to a COLMAP database, in one transaction, closed on exit: ``with
+    sqlite3.connect()`` alone leaves it open until garbage collection, and an open connection
+    keeps another process's writes in the -wal file (COLMAP's databases are in WAL mode),
+    where a plain file copy misses them."""
+    con = sqlite3.connect(database)
+    try:
+        with con:
+            yield con
+    finally:
+        con.close()
+
+
 def verified_matches(database: Path) -> tuple[int, int]:
     """(inlier matches, image pairs) of the two-view geometries COLMAP verified."""
-    with sqlite3.connect(database) as con:
+    with connect(database) as con:
         rows = con.execute("SELECT rows, config FROM two_view_geometries").fetchall()
     ok = [r for r, c in rows if c in VERIFIED and r > 0]
     return int(sum(ok)), len(ok)

@@ -46,7 +46,6 @@ import argparse
 import csv
 import json
 import shutil
-import sqlite3
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -57,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_colmap_sfm import (  # noqa: E402
     best_model,
     conf_args,
+    connect,
     match_and_map,
     model_stats,
     parse_methods,
@@ -212,7 +212,7 @@ def nearest_neighbour_deg(R: np.ndarray) -> float:
 def keep_images(db: Path, names: list[str]) -> None:
     """Delete from a COLMAP database every image not in ``names`` with its features and
     matches, and the cameras no image uses any more."""
-    with sqlite3.connect(db) as con:
+    with connect(db) as con:
         ids = dict(con.execute("SELECT name, image_id FROM images"))
         keep = set(names)
         drop = [(i,) for n, i in ids.items() if n not in keep]
@@ -225,9 +225,16 @@ def keep_images(db: Path, names: list[str]) -> None:
         con.execute("DELETE FROM cameras WHERE camera_id NOT IN (SELECT camera_id FROM images)")
 
 
+def copy_database(src: Path, dst: Path) -> None:
+    """A copy of a SQLite database through SQLite's backup API (with what is still in its
+    -wal file, which a file copy would miss)."""
+    with connect(src) as a, connect(dst) as b:
+        a.backup(b)
+
+
 def strip_features(db: Path) -> None:
     """Delete every image's features and matches (keeps cameras and images)."""
-    with sqlite3.connect(db) as con:
+    with connect(db) as con:
         for table in ("keypoints", "descriptors", "matches", "two_view_geometries"):
             con.execute(f"DELETE FROM {table}")
 
@@ -247,7 +254,7 @@ def extract_set(scene: SceneSet, method: str, spec, args, out: Path) -> Path:
     if method == "sift":
         t = run(sift_command(db, scene.images, args.max_num_features, scene.camera), log)
     else:
-        shutil.copy(extract_set(scene, "sift", None, args, out), db)
+        copy_database(extract_set(scene, "sift", None, args, out), db)
         strip_features(db)
         cmd = rectified_command(
             db, scene.images, args.max_num_features, args.num_workers, conf_args(spec, work)
@@ -276,7 +283,7 @@ def evaluate_subset(
         shutil.rmtree(work)
     work.mkdir(parents=True)
     db, log = work / "database.db", work / "log.txt"
-    shutil.copy(features_db, db)
+    copy_database(features_db, db)
     keep_images(db, names)
     ref_names = [n for n in names if n in {im.name for im in ref.images.values()}]
     R_ref_all, c_ref_all = camera_poses(ref, ref_names)

@@ -154,6 +154,30 @@ def test_keep_images(tmp_path):
         assert con.execute("SELECT COUNT(*) FROM matches").fetchone()[0] == 0
 
 
+def test_copy_database_keeps_what_is_still_in_the_wal_file(tmp_path):
+    """COLMAP's databases are in WAL mode: while any connection is open, another process's
+    writes stay in the -wal file, which a file copy misses (the first full run lost the
+    features of the last images so); the backup API copies them."""
+    db = tmp_path / "d.db"
+    create_database(db)
+    writer = sqlite3.connect(db)
+    assert writer.execute("PRAGMA journal_mode=WAL").fetchone()[0] == "wal"
+    holder = sqlite3.connect(db)  # another reader, left open
+    holder.execute("SELECT COUNT(*) FROM images").fetchone()
+    with writer:
+        writer.execute("INSERT INTO cameras VALUES (1, 1, 10, 10, NULL, 0)")
+        writer.execute("INSERT INTO images (image_id, name, camera_id) VALUES (1, 'a.jpg', 1)")
+    writer.close()
+    assert (tmp_path / "d.db-wal").stat().st_size > 0
+    shutil.copy(db, tmp_path / "file_copy.db")
+    script.copy_database(db, tmp_path / "copy.db")
+    holder.close()
+    for name, n in (("file_copy.db", 0), ("copy.db", 1)):
+        con = sqlite3.connect(tmp_path / name)
+        assert con.execute("SELECT COUNT(*) FROM images").fetchone()[0] == n, name
+        con.close()
+
+
 def _row(method, run, registered, points, **kw):
     r = {
         "set": "A",
