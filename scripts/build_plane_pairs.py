@@ -191,9 +191,9 @@ truth: the homographies come from SfM poses and intrinsics (the COLMAP models in
   normal), `transition_tilt` (anisotropy of H's local affine map, median over the plane's
   points: what a local feature must absorb; evd-dev's pairs have 3.6-46), `plane`,
   `num_points` (plane points seen in both images inside the region),
-  `h_median_err_px`/`h_p90_err_px` (transfer error of those points' observations under H,
-  pixels of image 1), `region_frac0/1`, `trained_on` (the shipped network was trained on
-  these photos), `source`.
+  `h_median_err_px`/`h_p90_err_px` (transfer error under H of the observations of all the
+  plane's points seen in both images, pixels of image 1), `region_frac0/1`, `trained_on`
+  (the shipped network was trained on these photos), `source`.
 
 Selection rule (fixed before any evaluation): >= {min_points} plane points seen in both
 images, median transfer error <= {max_median_err} px, region covering >= {min_frac} of each
