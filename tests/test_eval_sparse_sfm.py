@@ -36,61 +36,44 @@ SIM = (2.5, Rotation.from_euler("xyz", [30, -70, 110], degrees=True).as_matrix()
 
 
 def test_a_similarity_transform_of_the_reference_has_no_error():
-    R_ref, c_ref = _cameras(np.random.default_rng(0), 7)
-    rot, pos, how = script.pose_errors(*_similar(R_ref, c_ref, *SIM), R_ref, c_ref)
-    assert how == "centres"
-    np.testing.assert_allclose(rot, 0, atol=1e-5)
-    np.testing.assert_allclose(pos, 0, atol=1e-9)
+    rng = np.random.default_rng(0)
+    for centres in (None, np.outer(np.arange(5.0), [1.0, 0.5, 0.0])):  # also on a line
+        R_ref, c_ref = _cameras(rng, 7 if centres is None else 5, centres)
+        rot, pos = script.pose_errors(*_similar(R_ref, c_ref, *SIM), R_ref, c_ref)
+        np.testing.assert_allclose(rot, 0, atol=1e-5)
+        np.testing.assert_allclose(pos, 0, atol=1e-9)
+    rot, pos = script.pose_errors(*_similar(R_ref[:2], c_ref[:2], *SIM), R_ref[:2], c_ref[:2])
+    assert np.allclose(rot, 0, atol=1e-5) and np.allclose(pos, 0, atol=1e-9)
 
 
 def test_rotation_perturbations_come_back_exactly():
-    """Each camera turned by a known angle about a random axis: its rotation error is that
-    angle, the centres (and so the alignment) stay exact."""
+    """World-frame turns in +-pairs about two axes (their chordal mean is no turn): each
+    camera's rotation error is its angle, the centres stay exact."""
     rng = np.random.default_rng(1)
-    R_ref, c_ref = _cameras(rng, 6)
+    R_ref, c_ref = _cameras(rng, 5)
     R_est, c_est = _similar(R_ref, c_ref, *SIM)
-    angles = np.array([0.0, 1.0, 2.5, 5.0, 10.0, 40.0])
-    axes = rng.normal(size=(6, 3))
-    turn = Rotation.from_rotvec(
-        axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None], degrees=True
-    )
-    rot, pos, _ = script.pose_errors(turn.as_matrix() @ R_est, c_est, R_ref, c_ref)
-    np.testing.assert_allclose(rot, angles, atol=1e-5)
+    a, b = [1.0, 2.0, 2.0], [0.0, 1.0, -3.0]
+    vecs = np.array([a, a, b, b, a]) / np.linalg.norm([a, a, b, b, a], axis=1, keepdims=True)
+    angles = np.array([7.0, -7.0, 30.0, -30.0, 0.0])
+    P = Rotation.from_rotvec(vecs * angles[:, None], degrees=True).as_matrix()
+    rot, pos = script.pose_errors(R_ref @ P @ SIM[1], c_est, R_ref, c_ref)
+    np.testing.assert_allclose(rot, np.abs(angles), atol=1e-5)
     np.testing.assert_allclose(pos, 0, atol=1e-9)
 
 
 def test_position_perturbations_that_leave_the_fit_unchanged_come_back_exactly():
     """Reference centres on a square, lifted by +d on one diagonal and -d on the other: the
-    least-squares similarity is the unperturbed one, so every camera is off by exactly d."""
+    least-squares scale and translation are the unperturbed ones, so every camera is off by
+    exactly d."""
     a, d = 2.0, 0.3
     square = np.array([[a, 0, 0], [-a, 0, 0], [0, a, 0], [0, -a, 0]], float)
     R_ref, _ = _cameras(np.random.default_rng(2), 4, square)
     R_est, c_est = _similar(R_ref, square, *SIM)
     lifted = square + np.array([[0, 0, d], [0, 0, d], [0, 0, -d], [0, 0, -d]])
-    rot, pos, how = script.pose_errors(R_est, c_est, R_ref, lifted)
-    assert how == "centres"
+    rot, pos = script.pose_errors(R_est, c_est, R_ref, lifted)
     np.testing.assert_allclose(pos, d, atol=1e-9)
     np.testing.assert_allclose(rot, 0, atol=1e-5)
     assert script.centre_spread(square) == pytest.approx(a)
-
-
-def test_centres_on_a_line_align_by_the_orientations():
-    """A walk on a line (or two cameras): the rotation comes from the orientations; exact for
-    a similarity transform, and turns of +-theta about one world axis give theta each."""
-    line = np.outer(np.arange(5.0), [1.0, 0.5, 0.0])
-    R_ref, _ = _cameras(np.random.default_rng(3), 5, line)
-    R_est, c_est = _similar(R_ref, line, *SIM)
-    rot, pos, how = script.pose_errors(R_est, c_est, R_ref, line)
-    assert how == "orientations"
-    np.testing.assert_allclose(rot, 0, atol=1e-5)
-    np.testing.assert_allclose(pos, 0, atol=1e-9)
-    rot2, pos2, how2 = script.pose_errors(R_est[:2], c_est[:2], R_ref[:2], line[:2])
-    assert how2 == "orientations" and np.allclose(rot2, 0, atol=1e-5)
-    # world-frame turns that average to none: R_est_i = R_ref_i P_i R with P = +-7 deg
-    P = Rotation.from_rotvec(np.outer([7, -7, 7, -7, 0], [0, 0, 1]), degrees=True).as_matrix()
-    rot3, pos3, _ = script.pose_errors(R_ref @ P @ SIM[1], c_est, R_ref, line)
-    np.testing.assert_allclose(rot3, [7, 7, 7, 7, 0], atol=1e-5)
-    np.testing.assert_allclose(pos3, 0, atol=1e-9)
 
 
 def test_nearest_view_angle():
@@ -292,7 +275,11 @@ def test_rendered_street_end_to_end(tmp_path):
     for r in rows[::2]:
         assert r["registered"] == 6 and r["verified_pairs"] >= 5
         assert r["rot_err_med_deg"] < 0.5 and r["pos_err_med"] < 0.02, r
-        assert r["alignment"] == "orientations"  # a walk: the centres lie on a line
     with sqlite3.connect(out / "street" / "plain" / "features.db") as con:
         assert con.execute("SELECT COUNT(*) FROM cameras").fetchone()[0] == 1
     assert "| street (GT) | all |" in (out / "sparse_sfm.md").read_text()
+    # run again: features and COLMAP's models are reused, the models scored again
+    (out / "street" / "all" / "sift" / "log.txt").unlink()
+    assert script.main(args) == 0
+    assert json.loads((out / "sparse_sfm.json").read_text()) == rows
+    assert not (out / "street" / "all" / "sift" / "log.txt").exists()  # no COLMAP call
