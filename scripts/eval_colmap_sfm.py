@@ -41,15 +41,20 @@ from rectified_colmap.errors import run_script
 VERIFIED = (2, 3, 4, 5, 6)  # CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC
 
 
-def run(cmd: list[str], log: Path) -> float:
-    """Run ``cmd`` with its output appended to ``log``; wall seconds. Raises on failure."""
+def run(cmd: list[str], log: Path, allow: str | None = None) -> float:
+    """Run ``cmd`` with its output appended to ``log``; wall seconds. Raises on failure,
+    unless the failed command's output contains ``allow``."""
     t0 = time.perf_counter()
     with open(log, "a") as f:
+        start = f.tell()
         f.write("$ " + " ".join(cmd) + "\n")
         f.flush()
         r = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
     if r.returncode != 0:
-        raise RuntimeError(f"{cmd[0]} {cmd[1]} failed ({r.returncode}); see {log}")
+        with open(log, errors="replace") as f:
+            f.seek(start)
+            if allow is None or allow not in f.read():
+                raise RuntimeError(f"{cmd[0]} {cmd[1]} failed ({r.returncode}); see {log}")
     return time.perf_counter() - t0
 
 
@@ -190,7 +195,8 @@ def match_and_map(
     db: Path, images: Path, sparse: Path, log: Path, mapper=(), match=True
 ) -> tuple[float, float]:
     """``colmap exhaustive_matcher`` (CPU; skipped with ``match=False``) and ``colmap
-    mapper`` (one thread, plus the ``mapper`` flags) into ``sparse``; their wall seconds."""
+    mapper`` (one thread, plus the ``mapper`` flags) into ``sparse``; their wall seconds.
+    A mapper that finds no model leaves ``sparse`` empty."""
     t_match = 0.0
     if match:
         t_match = run(
@@ -220,6 +226,7 @@ def match_and_map(
             *mapper,
         ],
         log,
+        allow="failed to create sparse model",  # COLMAP 3.8's exit 1 for no model
     )
     return t_match, t_map
 

@@ -240,13 +240,14 @@ def evaluate_subset(
     scene: SceneSet, spec: str, method: str, features_db: Path, ref, args, out: Path
 ) -> list[dict]:
     """Match and map one subset with one method's features, once per seed; a row per run.
-    When ``rows.json`` holds runs of the same seeds, their models are scored again (the
-    current scoring code) without running COLMAP."""
+    When ``rows.json`` holds runs of the same seeds and --Mapper flags, their models are
+    scored again (the current scoring code) without running COLMAP."""
     names = subset_names([p.name for p in scene.images.iterdir() if p.is_file()], spec)
     work = out / scene.name / subset_label(spec).replace(":", "_") / method
     db, log, cached = work / "database.db", work / "log.txt", work / "rows.json"
     done = json.loads(cached.read_text()) if cached.exists() else []
-    if [r["seed"] for r in done] != list(args.seeds):
+    flags = " ".join(args.mapper)
+    if [(r["seed"], r.get("mapper_flags", "")) for r in done] != [(s, flags) for s in args.seeds]:
         done = []
         if work.exists():
             shutil.rmtree(work)
@@ -277,7 +278,7 @@ def evaluate_subset(
             times = {"match_s": t_match if i == 0 else rows[0]["match_s"], "map_s": t_map}
         matches, pairs = verified_matches(db)
         rec = best_model(sparse)
-        row = {**base, "run": i, "seed": seed, **times}
+        row = {**base, "run": i, "seed": seed, "mapper_flags": flags, **times}
         row.update(verified_matches=matches, verified_pairs=pairs, **model_stats(rec))
         row["models"] = sum(d.is_dir() for d in sparse.iterdir())
         row.update(registered_errors(rec, ref, ref_names, centre_spread(c_ref_all)))

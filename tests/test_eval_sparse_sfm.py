@@ -107,6 +107,18 @@ def test_mapper_flags():
             script.mapper_flags(bad)
 
 
+def test_run_allows_the_mappers_no_model_failure(tmp_path):
+    """colmap mapper exits 1 when it finds no model: 0 registered images, not an error."""
+    colmap_sfm = load_script("eval_colmap_sfm")
+    log = tmp_path / "log.txt"
+    cmd = ["sh", "-c", "echo 'ERROR: failed to create sparse model'; exit 1"]
+    assert colmap_sfm.run(cmd, log, allow="failed to create sparse model") >= 0
+    with pytest.raises(RuntimeError, match="sh -c failed"):
+        colmap_sfm.run(cmd, log)
+    with pytest.raises(RuntimeError):  # the allowed text must be in this command's output
+        colmap_sfm.run(["sh", "-c", "exit 1"], log, allow="failed to create sparse model")
+
+
 def test_keep_images(tmp_path):
     """A subset's database: the other images, their features, matches and unused cameras go."""
     db = tmp_path / "d.db"
