@@ -16,7 +16,8 @@ For each set and method the features are extracted once, for all the set's image
 - ``sift``: ``colmap feature_extractor`` (CPU). Its database's cameras are those of every
   method: Strecha gets the ground-truth intrinsics as one PINHOLE camera; a real-pool set
   gets COLMAP's defaults (one SIMPLE_RADIAL camera per image, focal length from EXIF or
-  1.2 x the larger side). A rectified method's database is a copy of it without the
+  1.2 x the larger side), or what ``--ImageReader.*`` flags ask for (e.g.
+  ``--ImageReader.single_camera 1``). A rectified method's database is a copy of it without the
   features, so ``rectified-colmap extract`` keeps those cameras (the same for both);
 - ``rectsift``: ``rectified-colmap extract`` with the default configuration; any other
   named configuration by its name, and ``--variant NAME=JSON|CONF``.
@@ -211,10 +212,11 @@ def strip_features(db: Path) -> None:
 def extract_set(scene: SceneSet, method: str, spec, args, out: Path) -> Path:
     """The features of every image of ``scene`` for ``method``, once (reused when done):
     ``out/<set>/<method>/features.db``. Rectified methods start from a featureless copy of
-    the ``sift`` database, so that every method has the same cameras."""
+    the ``sift`` database, so that every method has the same cameras. Features made with
+    other camera flags are made again."""
     work = out / scene.name / method
     db, done = work / "features.db", work / "features.done"
-    if done.exists():
+    if done.exists() and json.loads(done.read_text()).get("camera", []) == list(scene.camera):
         return db
     if work.exists():
         shutil.rmtree(work)
@@ -229,7 +231,7 @@ def extract_set(scene: SceneSet, method: str, spec, args, out: Path) -> Path:
             db, scene.images, args.max_num_features, args.num_workers, conf_args(spec, work)
         )
         t = run(cmd, log)
-    done.write_text(json.dumps({"extract_s": t}))
+    done.write_text(json.dumps({"extract_s": t, "camera": list(scene.camera)}))
     return db
 
 
@@ -240,14 +242,16 @@ def evaluate_subset(
     scene: SceneSet, spec: str, method: str, features_db: Path, ref, args, out: Path
 ) -> list[dict]:
     """Match and map one subset with one method's features, once per seed; a row per run.
-    When ``rows.json`` holds runs of the same seeds and --Mapper flags, their models are
-    scored again (the current scoring code) without running COLMAP."""
+    When ``rows.json`` holds runs of the same seeds, --Mapper and camera flags, their models
+    are scored again (the current scoring code) without running COLMAP."""
     names = subset_names([p.name for p in scene.images.iterdir() if p.is_file()], spec)
     work = out / scene.name / subset_label(spec).replace(":", "_") / method
     db, log, cached = work / "database.db", work / "log.txt", work / "rows.json"
     done = json.loads(cached.read_text()) if cached.exists() else []
-    flags = " ".join(args.mapper)
-    if [(r["seed"], r.get("mapper_flags", "")) for r in done] != [(s, flags) for s in args.seeds]:
+    flags, camera = " ".join(args.mapper), " ".join(scene.camera)
+    key = [(s, flags, camera) for s in args.seeds]
+    # rows from before camera_flags was recorded had the default cameras
+    if [(r["seed"], r.get("mapper_flags", ""), r.get("camera_flags", camera)) for r in done] != key:
         done = []
         if work.exists():
             shutil.rmtree(work)
@@ -278,7 +282,8 @@ def evaluate_subset(
             times = {"match_s": t_match if i == 0 else rows[0]["match_s"], "map_s": t_map}
         matches, pairs = verified_matches(db)
         rec = best_model(sparse)
-        row = {**base, "run": i, "seed": seed, "mapper_flags": flags, **times}
+        row = {**base, "run": i, "seed": seed, "mapper_flags": flags, "camera_flags": camera}
+        row.update(times)
         row.update(verified_matches=matches, verified_pairs=pairs, **model_stats(rec))
         row["models"] = sum(d.is_dir() for d in sparse.iterdir())
         row.update(registered_errors(rec, ref, ref_names, centre_spread(c_ref_all)))
@@ -459,7 +464,9 @@ def find_sets(args) -> list[SceneSet]:
             if (d / "images").is_dir() and (d / "colmap_sparse").is_dir():
                 n = sum(p.is_file() for p in (d / "images").iterdir())
                 subsets = ["0::1"] + (args.real_subsets if n >= args.real_subset_min_images else [])
-                sets.append(SceneSet(d.name, d / "images", d / "colmap_sparse", False, subsets))
+                sets.append(
+                    SceneSet(d.name, d / "images", d / "colmap_sparse", False, subsets, args.reader)
+                )
     if args.sets:
         unknown = set(args.sets) - {s.name for s in sets}
         if unknown:
@@ -478,20 +485,21 @@ def load_reference(scene: SceneSet):
     return rec
 
 
-def mapper_flags(extra: list[str]) -> list[str]:
-    """The command line's other words as ``colmap mapper`` flags: ``--Mapper.NAME VALUE``
-    pairs (or ``--Mapper.NAME=VALUE``), e.g. ``--Mapper.ba_refine_focal_length 0``.
+def colmap_flags(extra: list[str], groups=("Mapper", "ImageReader")) -> dict[str, list[str]]:
+    """The command line's other words as COLMAP flags per group: ``--GROUP.NAME VALUE``
+    pairs (or ``--GROUP.NAME=VALUE``), e.g. ``--Mapper.ba_refine_focal_length 0``.
     Raises ValueError for anything else."""
-    out, i = [], 0
+    out, i = {g: [] for g in groups}, 0
     while i < len(extra):
         flag, sep, value = extra[i].partition("=")
-        if not flag.startswith("--Mapper."):
+        group = flag[2:].partition(".")[0] if flag.startswith("--") else ""
+        if group not in out or "." not in flag:
             raise ValueError(f"unrecognized argument {extra[i]!r}")
         if not sep:
             if i + 1 >= len(extra) or extra[i + 1].startswith("--"):
                 raise ValueError(f"{flag}: expected a value")
             value, i = extra[i + 1], i + 1
-        out += [flag, value]
+        out[group] += [flag, value]
         i += 1
     return out
 
@@ -499,7 +507,9 @@ def mapper_flags(extra: list[str]) -> list[str]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n")[0],
-        epilog="Other colmap mapper options pass through: --Mapper.NAME VALUE.",
+        epilog="COLMAP options pass through: --Mapper.NAME VALUE to colmap mapper, "
+        "--ImageReader.NAME VALUE to the cameras of the real-pool sets (e.g. "
+        "--ImageReader.single_camera 1; Strecha always has its ground-truth camera).",
     )
     p.add_argument("--output_dir", "--output_path", type=Path, required=True)
     p.add_argument(
@@ -534,7 +544,8 @@ def main(argv=None) -> int:
     p.add_argument("--num_workers", type=int, default=1, help="rectified-colmap workers")
     args, extra = p.parse_known_args(argv)
     try:
-        args.mapper = mapper_flags(extra)
+        flags = colmap_flags(extra)
+        args.mapper, args.reader = flags["Mapper"], flags["ImageReader"]
         for spec in args.subsets + args.real_subsets:
             parse_subset(spec)
         methods = parse_methods(args.methods, args.variant)

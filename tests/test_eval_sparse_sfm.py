@@ -2,6 +2,7 @@
 subsets and the table exactly; one small run of the COLMAP command line on a rendered
 street (skipped without ``colmap``)."""
 
+import argparse
 import json
 import shutil
 import sqlite3
@@ -95,16 +96,58 @@ def test_subsets():
             script.parse_subset(bad)
 
 
-def test_mapper_flags():
-    assert script.mapper_flags(["--Mapper.a", "0", "--Mapper.b=1"]) == [
-        "--Mapper.a",
-        "0",
-        "--Mapper.b",
-        "1",
-    ]
-    for bad in (["--foo", "1"], ["--Mapper.a"], ["--Mapper.a", "--Mapper.b", "1"]):
+def test_find_sets(tmp_path):
+    """Strecha scenes with their GT camera and subsets; real-pool sets with a model, every
+    second image only from --real_subset_min_images on, with the --ImageReader flags."""
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=40, height=30, params=[50, 51, 20, 15])
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    (tmp_path / "strecha" / "s1" / "images").mkdir(parents=True)
+    (tmp_path / "strecha" / "s1" / "sparse").mkdir()
+    rec.write_text(str(tmp_path / "strecha" / "s1" / "sparse"))
+    (tmp_path / "strecha" / "no_model" / "images").mkdir(parents=True)
+    for name, n in (("big", 4), ("small", 3), ("single", 5)):
+        (tmp_path / "real" / name / "images").mkdir(parents=True)
+        for i in range(n):
+            (tmp_path / "real" / name / "images" / f"{i}.jpg").write_bytes(b"")
+        if name != "single":
+            (tmp_path / "real" / name / "colmap_sparse").mkdir()
+    args = argparse.Namespace(
+        strecha=str(tmp_path / "strecha"),
+        real_pool=str(tmp_path / "real"),
+        subsets=["0::1", "0::3"],
+        real_subsets=["0::2"],
+        real_subset_min_images=4,
+        reader=["--ImageReader.single_camera", "1"],
+        sets=None,
+    )
+    sets = {s.name: s for s in script.find_sets(args)}
+    assert list(sets) == ["s1", "big", "small"]
+    assert sets["s1"].ground_truth and sets["s1"].subsets == ["0::1", "0::3"]
+    assert "50.000000,51.000000,20.000000,15.000000" in sets["s1"].camera
+    assert sets["big"].subsets == ["0::1", "0::2"] and sets["small"].subsets == ["0::1"]
+    assert sets["big"].camera == ["--ImageReader.single_camera", "1"]
+    assert not sets["big"].ground_truth
+    args.sets = ["small", "nope"]
+    with pytest.raises(ValueError, match="no such set nope"):
+        script.find_sets(args)
+
+
+def test_colmap_flags():
+    flags = script.colmap_flags(["--Mapper.a", "0", "--ImageReader.single_camera=1"])
+    assert flags == {
+        "Mapper": ["--Mapper.a", "0"],
+        "ImageReader": ["--ImageReader.single_camera", "1"],
+    }
+    for bad in (
+        ["--foo", "1"],
+        ["--Mapper", "1"],
+        ["--Mapper.a"],
+        ["--Mapper.a", "--Mapper.b", "1"],
+    ):
         with pytest.raises(ValueError):
-            script.mapper_flags(bad)
+            script.colmap_flags(bad)
 
 
 def test_run_allows_the_mappers_no_model_failure(tmp_path):
