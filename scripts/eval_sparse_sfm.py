@@ -24,9 +24,9 @@ For each set and method the features are extracted once, for all the set's image
 
 Each subset's database is the set's database with only the subset's images. Then
 ``colmap exhaustive_matcher`` and ``colmap mapper`` (CPU, one mapper thread,
-``--Mapper.min_model_size 3``, other ``--Mapper.*`` flags passed on; once per ``--seeds``
-value, passed as ``--random_seed``: COLMAP's mapper still varies between runs, and the
-matcher, run once per subset, too). Per subset, method and mapper run, of the
+``--Mapper.min_model_size 3`` unless given, other ``--Mapper.*`` flags passed on; once per
+``--seeds`` value, passed as ``--random_seed``: COLMAP's mapper still varies between runs,
+and the matcher, run once per subset, too). Per subset, method and mapper run, of the
 mapper's largest model: registered images, 3D points, verified matches and pairs, the median
 relative-rotation error of all pairs of registered images (no alignment), and the rotation
 and position errors of the registered cameras after a similarity alignment to the
@@ -242,22 +242,29 @@ def evaluate_subset(
     scene: SceneSet, spec: str, method: str, features_db: Path, ref, args, out: Path
 ) -> list[dict]:
     """Match and map one subset with one method's features, once per seed; a row per run.
-    When ``rows.json`` holds runs of the same seeds, --Mapper and camera flags, their models
-    are scored again (the current scoring code) without running COLMAP."""
+    Reuses what ``rows.json`` says was done with the same camera flags: the matched
+    database (only the mapper runs again when the seeds or --Mapper flags differ), or also
+    the models (same seeds and flags), which are scored again without running COLMAP."""
     names = subset_names([p.name for p in scene.images.iterdir() if p.is_file()], spec)
     work = out / scene.name / subset_label(spec).replace(":", "_") / method
     db, log, cached = work / "database.db", work / "log.txt", work / "rows.json"
     done = json.loads(cached.read_text()) if cached.exists() else []
     flags, camera = " ".join(args.mapper), " ".join(scene.camera)
-    key = [(s, flags, camera) for s in args.seeds]
     # rows from before camera_flags was recorded had the default cameras
-    if [(r["seed"], r.get("mapper_flags", ""), r.get("camera_flags", camera)) for r in done] != key:
-        done = []
+    matched = bool(done) and all(r.get("camera_flags", camera) == camera for r in done)
+    runs = [(r["seed"], r.get("mapper_flags", "")) for r in done]
+    mapped = matched and runs == [(seed, flags) for seed in args.seeds]
+    match_s = done[0]["match_s"] if matched else None
+    if not matched:
         if work.exists():
             shutil.rmtree(work)
         work.mkdir(parents=True)
         copy_database(features_db, db)
         keep_images(db, names)
+    elif not mapped:
+        cached.unlink()
+        for d in work.glob("sparse-*"):
+            shutil.rmtree(d)
     ref_names = [n for n in names if n in {im.name for im in ref.images.values()}]
     R_ref_all, c_ref_all = camera_poses(ref, ref_names)
     base = {
@@ -273,13 +280,14 @@ def evaluate_subset(
     rows = []
     for i, seed in enumerate(args.seeds):
         sparse = work / f"sparse-{i}"
-        if done:
+        if mapped:
             times = {k: done[i][k] for k in ("match_s", "map_s")}
         else:
-            mapper = ["--Mapper.min_model_size", str(args.min_model_size)]
-            mapper += ["--random_seed", str(seed), *args.mapper]
-            t_match, t_map = match_and_map(db, scene.images, sparse, log, mapper, match=i == 0)
-            times = {"match_s": t_match if i == 0 else rows[0]["match_s"], "map_s": t_map}
+            mapper = ["--random_seed", str(seed), *mapper_command_flags(args.mapper)]
+            match = match_s is None
+            t_match, t_map = match_and_map(db, scene.images, sparse, log, mapper, match=match)
+            match_s = t_match if match else match_s
+            times = {"match_s": match_s, "map_s": t_map}
         matches, pairs = verified_matches(db)
         rec = best_model(sparse)
         row = {**base, "run": i, "seed": seed, "mapper_flags": flags, "camera_flags": camera}
@@ -485,6 +493,13 @@ def load_reference(scene: SceneSet):
     return rec
 
 
+def mapper_command_flags(flags: list[str]) -> list[str]:
+    """``colmap mapper`` flags: ``--Mapper.min_model_size 3`` unless ``flags`` set it, then
+    ``flags``."""
+    default = [] if "--Mapper.min_model_size" in flags else ["--Mapper.min_model_size", "3"]
+    return default + flags
+
+
 def colmap_flags(extra: list[str], groups=("Mapper", "ImageReader")) -> dict[str, list[str]]:
     """The command line's other words as COLMAP flags per group: ``--GROUP.NAME VALUE``
     pairs (or ``--GROUP.NAME=VALUE``), e.g. ``--Mapper.ba_refine_focal_length 0``.
@@ -509,7 +524,8 @@ def main(argv=None) -> int:
         description=__doc__.split("\n")[0],
         epilog="COLMAP options pass through: --Mapper.NAME VALUE to colmap mapper, "
         "--ImageReader.NAME VALUE to the cameras of the real-pool sets (e.g. "
-        "--ImageReader.single_camera 1; Strecha always has its ground-truth camera).",
+        "--ImageReader.single_camera 1; Strecha always has its ground-truth camera). "
+        "--Mapper.min_model_size is 3 unless given.",
     )
     p.add_argument("--output_dir", "--output_path", type=Path, required=True)
     p.add_argument(
@@ -537,7 +553,6 @@ def main(argv=None) -> int:
     p.add_argument(
         "--max_num_features", "--SiftExtraction.max_num_features", type=int, default=8192
     )
-    p.add_argument("--min_model_size", "--Mapper.min_model_size", type=int, default=3)
     p.add_argument(
         "--seeds", type=int, nargs="+", default=[0], help="one mapper run per value (repeats ok)"
     )

@@ -318,7 +318,7 @@ def test_rendered_street_end_to_end(tmp_path):
     out = tmp_path / "out"
     args = ["--output_dir", str(out), "--strecha", str(tmp_path / "data"), "--real_pool", "none"]
     args += ["--methods", "sift", "--variant", "plain=sift", "--subsets", "0::1", "0::2"]
-    args += ["--Mapper.ba_refine_focal_length", "0"]  # passed on to colmap mapper
+    args += ["--Mapper.ba_refine_focal_length=0"]  # passed on to colmap mapper
     assert script.main(args) == 0
     rows = json.loads((out / "sparse_sfm.json").read_text())
     assert [(r["method"], r["subset"], r["images"]) for r in rows] == [
@@ -338,3 +338,12 @@ def test_rendered_street_end_to_end(tmp_path):
     assert script.main(args) == 0
     assert json.loads((out / "sparse_sfm.json").read_text()) == rows
     assert not (out / "street" / "all" / "sift" / "log.txt").exists()  # no COLMAP call
+    # other mapper flags: the matched databases are reused, only the mapper runs again
+    assert script.main([*args, "--Mapper.init_min_tri_angle", "8"]) == 0
+    log = (out / "street" / "all" / "sift" / "log.txt").read_text()
+    assert "$ colmap mapper" in log and "exhaustive_matcher" not in log
+    again = json.loads((out / "sparse_sfm.json").read_text())
+    flags = "--Mapper.ba_refine_focal_length 0 --Mapper.init_min_tri_angle 8"
+    assert [r["mapper_flags"] for r in again] == [flags] * 4
+    assert [r["match_s"] for r in again] == [r["match_s"] for r in rows]
+    assert again[0]["registered"] == 6
