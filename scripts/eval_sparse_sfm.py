@@ -53,8 +53,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_colmap_sfm import (  # noqa: E402
+from rectified_colmap.eval.colmap_sfm import (
     best_model,
     conf_args,
     connect,
@@ -69,7 +68,7 @@ from eval_colmap_sfm import (  # noqa: E402
     verified_matches,
 )
 
-from rectified_colmap.errors import run_script  # noqa: E402
+from rectified_colmap.errors import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

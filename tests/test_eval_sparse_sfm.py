@@ -11,6 +11,8 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+
+from rectified_colmap.eval import colmap_sfm
 from scipy.spatial.transform import Rotation
 from scripts_util import load_script
 
@@ -152,7 +154,6 @@ def test_colmap_flags():
 
 def test_run_allows_the_mappers_no_model_failure(tmp_path):
     """colmap mapper exits 1 when it finds no model: 0 registered images, not an error."""
-    colmap_sfm = load_script("eval_colmap_sfm")
     log = tmp_path / "log.txt"
     cmd = ["sh", "-c", "echo 'ERROR: failed to create sparse model'; exit 1"]
     assert colmap_sfm.run(cmd, log, allow="failed to create sparse model") >= 0
