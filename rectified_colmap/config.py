@@ -53,8 +53,10 @@ class PlaneConf:
 class RectifyConf:
     """Plane patches -> homographies and rectified images (rectified_colmap.rectify)."""
 
-    max_viewing_angle_deg: float = 80.0
-    """Crop: drop pixels whose viewing ray makes more than this angle with the normal."""
+    max_viewing_angle_deg: float = 86.0
+    """Crop: drop pixels whose viewing ray makes more than this angle with the normal (an
+    extreme pair overlaps where each view sees the plane most obliquely: evd-dev 3 -> 5
+    pairs from 80 to 86 with the true orientation)."""
     min_rectify_angle_deg: float = 30.0
     """Patches whose median viewing angle (ray to normal, over the patch) is under this are
     left to plain SIFT: seen near-frontally, the warp changes little. Strecha, 1024
@@ -71,11 +73,25 @@ class RectifyConf:
     """Budget on the summed size (w x h) of all rectified patches of an image, as a multiple
     of the image's area; patches are scaled down together when over it (bounds the cost of
     SIFT in patches to about that of plain SIFT on the image)."""
+    max_total_pixels: float = 2e6
+    """Cap on the summed size of all rectified views of an image, in pixels, whatever the
+    image size: the views' SIFT costs at most about that of one 2 MP photo. Small photos
+    keep views several times their size (evd-dev, 0.3-0.7 MP: 1.2-5 MP of views, which its
+    extreme pairs need); a 1536x1024 photo's oblique views are scaled down together."""
     border: int = 6
     """Features closer than this to the border of the warped region are dropped (pixels)."""
     keep_plain: bool = True
     """Also keep plain SIFT on rectified pixels (they share the budget half and half): a
     safety net when the depth, and so the patch orientation, is unreliable."""
+    tilt_steps: int = 1
+    """Views beside each rectification seen at ``tilt_bank_min_angle_deg`` or more: its
+    mask rectified as if its tilt t = 1 / cos(viewing angle) were t x ``tilt_factor``**k,
+    k = +-1..+-tilt_steps (rectify.tilt_neighbours): robustness to orientation errors, which
+    at 70-80 degrees leave residual tilts SIFT does not absorb (0: off)."""
+    tilt_factor: float = 2**0.5
+    """Ratio of neighbouring tilts of the bank (ASIFT's sampling step)."""
+    tilt_bank_min_angle_deg: float = 45.0
+    """Rectifications seen more frontally than this get no tilt neighbours."""
 
 
 @dataclass
@@ -97,20 +113,17 @@ class DedupConf:
     keep_rectified_tilt_deg: float = 25.0
     """Of two twins the rectified one is kept where its patch is seen more obliquely than
     this there (frame anisotropy > 1 / cos), else the plain one."""
-    max_plain_cosine: float = 1.0
+    max_plain_cosine: float = 0.9
     """Rectified features whose descriptor has a cosine similarity above this with any kept
     plain feature of the image are dropped (1: none). Such a feature, wherever it lies,
     crowds that plain feature's true match out of Lowe's ratio test as its second-nearest
-    neighbour (eval.match_sources; on Sacre Coeur the superset lost 2.9 % of plain SIFT's
-    matches so). With plain twins kept (``keep_rectified_tilt_deg`` 90), 0.9 keeps 99.4 %
-    (docs/evaluation.md, "Crowding")."""
-    extra_frac: float = 0.0
+    neighbour (eval.match_sources; on Sacre Coeur a superset without this rule lost 2.9 % of
+    plain SIFT's matches, with 0.9 it keeps 99.4 %: docs/evaluation.md, "Crowding")."""
+    extra_frac: float = 0.5
     """Rectified features may come on top of plain SIFT's, up to this fraction of its
-    keypoint count, before plain features make room (dedup.keypoint_cap). 0: as many
-    keypoints as plain SIFT with the same budget; 0.5 (``rectsift-plus``): every plain
-    feature that is not a twin is kept, +5-12 / +15-26 % keypoints on Strecha at 8192 /
-    1024 features (docs/evaluation.md)."""
-    keep_all_plain: bool = False
+    keypoint count (dedup.keypoint_cap); without ``keep_all_plain`` plain features then
+    make room (0: as many keypoints as plain SIFT with the same budget)."""
+    keep_all_plain: bool = True
     """Every plain feature is kept, whatever the rectified ones: a plain twin always wins,
     and where the rectified features exceed ``extra_frac`` x plain SIFT's count, the
     rectified ones are cut (smallest scales first) instead of plain ones making room. The
@@ -152,14 +165,24 @@ class SiftConf:
     coarse_first_pixels_per_feature: float = 500.0
     """Strecha photos give one coarse-octave SIFT point per ~370 pixels (8192 features fill
     from ~3 MP up); 500 leaves a margin."""
+    patch_budget_factor: float = 2.0
+    """With ``dedup.keep_all_plain``: the rectified views' SIFT budgets sum to this x the
+    features they may add (dedup.keypoint_cap minus plain SIFT's count), shared by area;
+    twins and crowding features go, the cap cuts the rest."""
     pool_coarse_first: bool = True
     """``coarse_first`` also for plain SIFT on the whole image (the pool that fills what the
-    patches leave, and images without planes). False: exact COLMAP calls there at every size,
-    so the pool's features are exactly plain COLMAP SIFT's (``rectsift-plus``: a superset of
-    plain SIFT at any budget), at COLMAP's time and memory for the pool (patches keep
-    ``coarse_first``). Strecha at 1024 features, where coarse-first pays: the coarse-first
-    pool alone has fewer GT-correct matches than plain SIFT on 80 pairs, more on 36
-    (docs/benchmarks.md); ``rectsift-plus`` with the exact pool more on 64, fewer on 9."""
+    patches leave, and images without planes), on images of at least
+    ``pool_coarse_first_min_pixels``. False: exact COLMAP calls there at every size, so the
+    pool's features are exactly plain COLMAP SIFT's, at COLMAP's time and memory for the
+    pool (patches keep ``coarse_first``). Strecha at 1024 features, where coarse-first pays:
+    the coarse-first pool alone has fewer GT-correct matches than plain SIFT on 80 pairs,
+    more on 36 (docs/benchmarks.md)."""
+    pool_coarse_first_min_pixels: float = 3e6
+    """The pool runs coarse-first only on images of at least this many pixels (after
+    ``max_image_size``), where the budget is filled from the coarser octaves: Strecha
+    upscaled to 3072x2048 (6.3 MP), 8192 features, 5 RANSAC runs: success 100 vs 100 %,
+    GT-correct more / fewer on 54 / 68 pairs (sign p = 0.24), median ratio 1.00, 2.5x less
+    time (docs/benchmarks.md "The exact pool at 3-24 MP"). Below, exact COLMAP calls."""
 
 
 DISPARITY_SHIFTS = ("zero", "orthogonal")
@@ -260,7 +283,7 @@ class VpConf:
     """Depth-free patches: 'lines' = line-support regions (disjoint, vp.line_support_patches)
     or 'whole' = the paper's VP baseline, whole-image warps (per trusted axis, each side of
     its vanishing line entirely; overlapping, vp.whole_image_patches). See docs/vp.md."""
-    line_hypotheses: int = 0
+    line_hypotheses: int = 3
     """Plane hypotheses from pairs of vanishing points (vp.hypotheses; no Manhattan frame, no
     intrinsics needed): whole-image warps for up to this many of the strongest, beside the
     patches of depth (0: off). See docs/vp.md "Plane hypotheses"."""
@@ -276,7 +299,7 @@ class VpConf:
     hypotheses_only_unoriented: bool = False
     """Plane hypotheses only for images whose depth directions no vanishing direction
     snapped to (where the lines already oriented the planes, they are trusted)."""
-    hypothesis_min_tilt_deg: float = 0.0
+    hypothesis_min_tilt_deg: float = 50.0
     """Only hypotheses whose plane is tilted at least this much from the image plane (angle
     between the normal and the optical axis) get a patch."""
 
@@ -328,35 +351,26 @@ def merge_conf(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[s
 
 # hloc-style named configurations.
 confs: dict[str, dict[str, Any]] = {
+    # the default: exact plain SIFT, and rectified features on top (depth patches, plane
+    # hypotheses from vanishing points, tilt neighbours): docs/evaluation.md "One default"
     "rectsift": {},
-    "rectsift-fast": {"normals": {"work_max_size": 480}, "sift": {"max_num_features": 4096}},
-    # extreme viewpoints (60-85 degrees, e.g. EVD): plus whole-image warps for up to 3 plane
-    # hypotheses from pairs of vanishing points tilted >= 50 degrees, crop at 86 degrees.
-    # Solves 5 of 7 evd-dev pairs (default: 1, ASIFT: 4) but keeps fewer GT-correct matches
-    # on moderate viewpoints (Strecha, 1024 features: 0.88 of plain SIFT's, default 0.95):
-    # docs/vp.md "Plane hypotheses".
-    "rectsift-wide": {
-        "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
-        "rectify": {"max_viewing_angle_deg": 86.0},
-    },
-    # rectsift-wide whose rectified features come on top of plain SIFT's (up to +50 %):
-    # every plain SIFT feature is kept unchanged (a rectified twin never replaces it, and the
-    # pool is exact COLMAP SIFT at every size), and no rectified feature may crowd one
-    # (descriptor cosine > 0.9 with any plain feature of the image). 4 of 7 evd-dev pairs,
-    # hloc Sacre Coeur 1576 vs 1580 3D points (8 seeds: a tie); Strecha (5 RANSAC runs):
-    # success 100 vs 100 % at 8192 features and 92.2 vs 90.6 % at 1024, GT-correct not
-    # lower than plain SIFT's in any rotation bin. Costs: +9-37 % keypoints, 1.6x plain
-    # SIFT's time on rendered streets, 3.1 GB and 1.75x at 6000x4000 (docs/evaluation.md
-    # "An exact pool, and five RANSAC runs per pair").
-    "rectsift-plus": {
-        "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
-        "rectify": {"max_viewing_angle_deg": 86.0},
-        "dedup": {"extra_frac": 0.5, "keep_all_plain": True, "max_plain_cosine": 0.9},
-        "sift": {"pool_coarse_first": False},
+    # cheaper: a coarser work grid, half the budget, one hypothesis, no tilt neighbours
+    "rectsift-fast": {
+        "normals": {"work_max_size": 480},
+        "vp": {"line_hypotheses": 1},
+        "rectify": {"tilt_steps": 0, "max_total_pixels": 0.5e6},
+        "sift": {"max_num_features": 4096},
     },
     # no patch can pass, exact COLMAP calls: exactly plain SIFT
     "sift": {"planes": {"min_area_frac": 2.0}, "sift": {"coarse_first": False}},
 }
+
+RETIRED_CONFS: dict[str, str] = {
+    "rectsift-wide": "its plane hypotheses from vanishing points are in the default",
+    "rectsift-plus": "the default keeps every plain SIFT feature and adds rectified ones",
+}
+"""Names of earlier confs -> why the default replaces them (the CLI says so and runs the
+default)."""
 
 
 # -- evaluation and localization (rectified_colmap.eval) ----------------------------------

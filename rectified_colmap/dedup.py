@@ -120,7 +120,8 @@ def duplicate_pairs(
     cosine above ``conf.min_cosine`` and scales (square root of |det A|) within a factor
     ``conf.max_scale_ratio``. With ``only_across`` (default conf.only_across) a pair must
     come from different sources (plain SIFT, patch 0, patch 1, ...): SIFT's own twins
-    inside one detection are left alone."""
+    inside one detection are left alone (each rectified view, tilt neighbours included, is
+    a patch of its own)."""
     only_across = conf.only_across if only_across is None else only_across
     pairs = neighbour_pairs(feats.keypoints, conf.radius_px)
     if only_across:
@@ -192,13 +193,17 @@ def keypoint_cap(plain_count: int, conf: DedupConf = DedupConf()) -> int:
     return round(plain_count * (1 + conf.extra_frac))
 
 
-def largest_scales(feats: Features, index: np.ndarray, n: int) -> np.ndarray:
-    """The ``n`` of ``feats[index]`` with the largest scales (|det A|), in index order
-    (COLMAP's own budget keeps the largest scales); all of them when there are at most n."""
+def largest_scales(feats: Features, index: np.ndarray, n: int, major: bool = False) -> np.ndarray:
+    """The ``n`` of ``feats[index]`` with the largest scales, in index order (COLMAP's own
+    budget keeps the largest scales); all of them when there are at most n. Scale: |det A|,
+    or with ``major`` the larger singular value of A: a rectified feature's scale in its
+    view along the direction the warp did not stretch, which does not penalise the most
+    oblique views as |det A| (~ cos of the tilt) would."""
     if len(index) <= n:
         return index
     sv = frame_scales(feats.shapes[index])
-    order = np.argsort(-(sv[:, 0] * sv[:, 1]), kind="stable")[:n]
+    key = sv[:, 0] if major else sv[:, 0] * sv[:, 1]
+    order = np.argsort(-key, kind="stable")[:n]
     return np.sort(index[order])
 
 
@@ -220,7 +225,7 @@ def fill_from_plain(
     the image) are dropped before plain features make room: they leave their place too.
 
     With ``conf.keep_all_plain`` no plain feature ever makes room: the rectified ones are
-    cut to ``target`` minus the plain count instead, smallest scales first."""
+    cut to ``target`` minus the plain count instead, smallest (major) scales first."""
     both = Features.concatenate([rectified, plain])
     keep = near_duplicate_mask(both, conf) if conf.enabled else np.ones(len(both), bool)
     n_rect = len(rectified)
@@ -230,7 +235,8 @@ def fill_from_plain(
         cos = max_cosine(rectified.descriptors[rect_keep], plain.descriptors[plain_keep])
         rect_keep = rect_keep[cos <= conf.max_plain_cosine]
     if conf.keep_all_plain:
-        rect_keep = largest_scales(rectified, rect_keep, max(0, target - len(plain_keep)))
+        room = max(0, target - len(plain_keep))
+        rect_keep = largest_scales(rectified, rect_keep, room, major=True)
     else:
         plain_keep = largest_scales(plain, plain_keep, max(0, target - len(rect_keep)))
     return Features.concatenate([plain.subset(plain_keep), rectified.subset(rect_keep)])

@@ -287,9 +287,16 @@ def coarse_first_pays(
 def pool_coarse_first(
     shape: tuple[int, int], max_num_features: int, conf: SiftConf = SiftConf()
 ) -> bool:
-    """``coarse_first_pays`` for plain SIFT on the whole image of ``shape`` (the pool), unless
-    ``conf.pool_coarse_first`` is off (exact COLMAP calls: exactly plain SIFT's features)."""
-    return bool(conf.pool_coarse_first) and coarse_first_pays(shape, max_num_features, conf)
+    """``coarse_first_pays`` for plain SIFT on the whole image of ``shape`` (the pool), on
+    images of at least ``conf.pool_coarse_first_min_pixels`` (after SIFT's downscaling),
+    unless ``conf.pool_coarse_first`` is off; else exact COLMAP calls: exactly plain SIFT's
+    features."""
+    w, h = sift_input_size(shape[1], shape[0], conf)
+    return (
+        bool(conf.pool_coarse_first)
+        and w * h >= conf.pool_coarse_first_min_pixels
+        and coarse_first_pays(shape, max_num_features, conf)
+    )
 
 
 def patch_first_octave(

@@ -31,6 +31,7 @@ from .features import (
     pool_coarse_first,
     rectification_budgets,
     rectified_features,
+    split_budget,
 )
 from .geometry import scaled_size
 from .normals import depth_to_normals
@@ -41,6 +42,7 @@ from .rectify import (
     rectifications_within_area,
     viewing_coverage,
     viewing_masks,
+    with_tilt_neighbours,
 )
 from .vp import (
     depth_free_planes,
@@ -184,6 +186,8 @@ def extract_image(
 
     with timed(t, "homographies"):
         todo = patches_worth_rectifying(gray, camera, planes.patches, conf.rectify)
+        patches, todo = with_tilt_neighbours(camera, planes.patches, todo, conf.rectify)
+        planes = replace(planes, patches=patches)
         rects = rectifications_within_area(camera, planes.patches, todo, conf.rectify)
         masks = viewing_masks(
             camera, rects, planes.patches, planes.labels.shape, conf.rectify.max_viewing_angle_deg
@@ -194,6 +198,9 @@ def extract_image(
         result.features = plain_sift(gray, conf)
         return result
 
+    if conf.dedup.keep_all_plain:
+        result.features = features_on_top(gray, camera, rects, masks, conf, t)
+        return result
     budgets = rectification_budgets(masks, total, conf.rectify.keep_plain)
     plain_region = np.ones_like(cover, bool) if conf.rectify.keep_plain else cover < 0
 
@@ -204,15 +211,7 @@ def extract_image(
         plain = Features.empty()
         if plain_budget > 0 and plain_region.any():
             plain = plain_features(gray, plain_region, plain_budget, conf.sift)
-    parts = []
-    for i, rect in enumerate(rects):
-        with timed(t, "warps+sift_patches"):
-            budget = int(budgets[i + 1])
-            parts.append(
-                rectified_features(
-                    gray, camera, rect, rect.patch_index, budget, conf.sift, conf.rectify.border
-                )
-            )
+    parts = _rectified_parts(gray, camera, rects, budgets[1:], conf, t)
     if not conf.dedup.enabled:
         result.features = Features.concatenate([plain] + parts)
         return result
@@ -223,3 +222,45 @@ def extract_image(
         cap = keypoint_cap(target, conf.dedup)
         result.features = fill_from_plain(Features.concatenate(parts), plain, cap, conf.dedup)
     return result
+
+
+def _rectified_parts(gray, camera, rects, budgets, conf: ExtractConf, t) -> list[Features]:
+    """SIFT in each rectified view with its budget, mapped back (timed)."""
+    parts = []
+    for rect, budget in zip(rects, budgets):
+        with timed(t, "warps+sift_patches"):
+            parts.append(
+                rectified_features(
+                    gray,
+                    camera,
+                    rect,
+                    rect.patch_index,
+                    int(budget),
+                    conf.sift,
+                    conf.rectify.border,
+                )
+            )
+    return parts
+
+
+def features_on_top(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    rects: list[Rectification],
+    masks: np.ndarray,
+    conf: ExtractConf,
+    t: dict[str, float],
+) -> Features:
+    """Exactly plain SIFT's features (the whole budget on the whole image) plus rectified
+    ones on top (``conf.dedup.keep_all_plain``): at most ``dedup.extra_frac`` x plain SIFT's
+    count, none a twin of a plain feature or crowding one out of the ratio test. The views'
+    SIFT budgets share ``sift.patch_budget_factor`` x that room by covered area (``masks``,
+    (n, h, w) bool), so they cost what they may add."""
+    with timed(t, "sift_plain"):
+        plain = plain_sift(gray, conf)
+    cap = keypoint_cap(len(plain), conf.dedup)
+    room = round(conf.sift.patch_budget_factor * (cap - len(plain)))
+    areas = masks.reshape(len(masks), -1).sum(1)
+    parts = _rectified_parts(gray, camera, rects, split_budget(room, areas), conf, t)
+    with timed(t, "dedup"):
+        return fill_from_plain(Features.concatenate(parts), plain, cap, conf.dedup)

@@ -383,28 +383,94 @@ def rectified_to_image(
     return out, Jp @ Jm
 
 
-def patch_evidence(
-    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per patch: (median viewing angle in degrees, median texture), each (n,).
-
-    The viewing angle of a cell is the angle between its ray and the patch normal (0: the
-    patch is seen frontally there); texture is the Sobel gradient magnitude of the image
-    resampled to the work grid (INTER_AREA; 8 x grey levels per work cell; sky and blank
-    walls are under ~5, Strecha facades ~40, cobblestones ~15)."""
+def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
+    """(n,) median viewing angle of each patch in degrees: the angle between a cell's ray
+    and the patch normal (0: seen frontally there)."""
     if not patches:
-        return np.zeros(0), np.zeros(0)
+        return np.zeros(0)
     h, w = patches[0].mask.shape
     rays = cam_utils.grid_rays(camera, w, h)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    g = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
-    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-    angle, texture = np.zeros(len(patches)), np.zeros(len(patches))
+    angle = np.zeros(len(patches))
     for i, p in enumerate(patches):
         cos = np.clip(-(rays[p.mask] @ p.normal), -1.0, 1.0)
         angle[i] = np.degrees(np.arccos(np.median(cos))) if cos.size else 0.0
-        texture[i] = np.median(mag[p.mask]) if cos.size else 0.0
-    return angle, texture
+    return angle
+
+
+def patch_evidence(
+    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per patch: (median viewing angle in degrees (``viewing_angles``), median texture),
+    each (n,).
+
+    Texture is the Sobel gradient magnitude of the image resampled to the work grid
+    (INTER_AREA; 8 x grey levels per work cell; sky and blank walls are under ~5, Strecha
+    facades ~40, cobblestones ~15)."""
+    if not patches:
+        return np.zeros(0), np.zeros(0)
+    h, w = patches[0].mask.shape
+    g = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
+    texture = np.array([np.median(mag[p.mask]) if p.mask.any() else 0.0 for p in patches])
+    return viewing_angles(camera, patches), texture
+
+
+def tilt_neighbours(
+    camera: pycolmap.Camera, patch: Patch, factor: float, steps: int
+) -> list[Patch]:
+    """Patches with ``patch``'s mask whose normals are tilted so that the patch's tilt
+    t = 1 / cos(viewing angle) becomes t * factor**k, k = +-1..+-steps (rotations about
+    n x v, v the patch's mean viewing ray; tilts under 1 or beyond 89 degrees are skipped).
+
+    At strong obliquity the rectification is steep in the orientation: at 70 degrees a
+    5-degree error leaves a residual tilt of 1.3, at 80 degrees one of 1.7, beyond what
+    SIFT absorbs, and the network and vanishing points err by more than that. ASIFT samples
+    tilts factor-spaced (sqrt 2) for the same reason. Both directions count on real photos
+    (evd-dev, docs/evaluation.md "One default"): a plane rectified too little stays
+    foreshortened; one rectified too much is stretched, which hurts less on a single view
+    (synthetic: 40 vs 177 GT-consistent matches for 6 degrees either way at 75) but
+    guessed focal lengths and vanishing points overstate tilts too."""
+    h, w = patch.mask.shape
+    rays = cam_utils.grid_rays(camera, w, h)[patch.mask]
+    v = rays.sum(0)
+    v /= np.linalg.norm(v)
+    n = np.asarray(patch.normal, float) / np.linalg.norm(patch.normal)
+    cos0 = float(np.clip(-(n @ v), 1e-6, 1.0))
+    axis = np.cross(n, v)
+    if np.linalg.norm(axis) < 1e-9:
+        return []
+    axis /= np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    out = []
+    for k in [k for k in range(-steps, steps + 1) if k != 0]:
+        cos_k = cos0 / factor**k
+        if not np.cos(np.deg2rad(89.0)) <= cos_k <= 1.0:
+            continue
+        delta = np.arccos(cos_k) - np.arccos(cos0)  # > 0: more tilt
+        # Rodrigues: rotating n about n x v by +delta moves it away from -v (more tilt)
+        R = np.eye(3) + np.sin(delta) * K + (1 - np.cos(delta)) * (K @ K)
+        out.append(Patch(patch.mask, patch.axis, R @ n, patch.area_frac))
+    return out
+
+
+def with_tilt_neighbours(
+    camera: pycolmap.Camera, patches: list[Patch], todo: list[int], conf: RectifyConf
+) -> tuple[list[Patch], list[int]]:
+    """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
+    of those in ``todo`` seen at conf.tilt_bank_min_angle_deg or more, and ``todo`` with
+    their indices (each neighbour right after the patches it was made from)."""
+    if conf.tilt_steps <= 0 or not todo:
+        return patches, todo
+    angle = viewing_angles(camera, [patches[i] for i in todo])
+    patches, todo = list(patches), list(todo)
+    for i, a in zip(list(todo), angle):
+        if a < conf.tilt_bank_min_angle_deg:
+            continue
+        for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
+            todo.append(len(patches))
+            patches.append(p)
+    return patches, todo
 
 
 def patches_worth_rectifying(
@@ -433,7 +499,8 @@ def rectifications_within_area(
     their summed size exceeds ``conf.max_total_area_factor`` x the image area x the
     patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
     to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
-    patches of their size would get). Each patch's view is computed once."""
+    patches of their size would get), or ``conf.max_total_pixels``. Each patch's view is
+    computed once."""
     views = [(i, _patch_view(camera, patches[i], conf)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
 
@@ -448,6 +515,7 @@ def rectifications_within_area(
     if masks:
         overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
     budget = conf.max_total_area_factor * camera.width * camera.height * overlap
+    budget = min(budget, conf.max_total_pixels)
     if total > budget:
         rects = plan(float(np.sqrt(budget / total)))
     return rects

@@ -20,7 +20,12 @@ def test_conf_from_dict_merges_and_rejects_unknown():
 
 
 def test_merge_conf_overrides_key_by_key_and_changes_no_input():
-    base = confs["rectsift-plus"]
+    base = {
+        "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
+        "rectify": {"max_viewing_angle_deg": 86.0},
+        "dedup": {"extra_frac": 0.5},
+        "sift": {"pool_coarse_first": False},
+    }
     before = {section: dict(values) for section, values in base.items()}
     overrides = {"vp": {"line_hypotheses": 1}, "sift": {"max_num_features": 1024}}
     merged = merge_conf(base, overrides)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.config import DedupConf, ExtractConf, confs
+from rectified_colmap.config import DedupConf, ExtractConf
 from rectified_colmap.dedup import (
     duplicate_fraction,
     duplicate_pairs,
@@ -16,9 +16,21 @@ from rectified_colmap.dedup import (
     neighbour_pairs,
 )
 from rectified_colmap.depth import DepthMap
-from rectified_colmap.features import Features, coarse_first_pays, detect_sift, similarity_frames
+from rectified_colmap.features import (
+    Features,
+    coarse_first_pays,
+    detect_sift,
+    pool_coarse_first,
+    similarity_frames,
+)
 from rectified_colmap.pipeline import extract_image
 from tests.conftest import look_at, plane_view, textured_image
+from tests.scenes import REPLACING
+
+
+REPLACE = REPLACING["dedup"]
+"""The replacing mode (rectified twins and features take plain ones' places): what these
+unit tests of fill_from_plain exercise; the default keeps every plain feature."""
 
 
 def brute_pairs(xy, r):
@@ -81,7 +93,7 @@ def test_twin_rules_location_descriptor_scale_source():
 def test_oblique_patch_keeps_the_rectified_twin_frontal_keeps_plain():
     rng = np.random.default_rng(3)
     d = random_desc(rng, 2)
-    conf = DedupConf(keep_rectified_tilt_deg=25.0)
+    conf = DedupConf(keep_rectified_tilt_deg=25.0, **REPLACE)
     for tilt, rect_wins in ((60.0, True), (10.0, False)):
         J = np.diag([1.0, np.cos(np.deg2rad(tilt))])
         plain = make_features([[5, 5], [20, 5]], [2, 2], [0, 0], d, [-1, -1])
@@ -128,7 +140,7 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
             ),
         ]
     )
-    out = fill_from_plain(rect, plain, n, DedupConf())
+    out = fill_from_plain(rect, plain, n, DedupConf(**REPLACE))
     assert len(out) == n
     assert (out.patch >= 0).sum() == 50  # every rectified feature kept
     kept_plain = out.subset(out.patch < 0)
@@ -140,14 +152,14 @@ def test_fill_from_plain_keeps_target_and_drops_smallest_plain_scales():
     got = _rows_of(plain, kept_plain)
     np.testing.assert_array_equal(got, expect)
     # Patches that yield nothing leave the whole budget to plain SIFT.
-    assert len(fill_from_plain(Features.empty(), plain, 150, DedupConf())) == 150
-    assert len(fill_from_plain(Features.empty(), plain, 500, DedupConf())) == n
+    assert len(fill_from_plain(Features.empty(), plain, 150, DedupConf(**REPLACE))) == 150
+    assert len(fill_from_plain(Features.empty(), plain, 500, DedupConf(**REPLACE))) == n
     # extra_frac: the rectified features come on top of plain SIFT's up to that fraction
     # (170 plain features are left after the twins, 50 rectified ones).
     for extra, num_plain in ((0.25, 170), (0.1, 170), (0.05, 160), (0.0, 150)):
-        cap = keypoint_cap(n, DedupConf(extra_frac=extra))
+        cap = keypoint_cap(n, DedupConf(**{**REPLACE, "extra_frac": extra}))
         assert cap == round(n * (1 + extra))
-        out = fill_from_plain(rect, plain, cap, DedupConf())
+        out = fill_from_plain(rect, plain, cap, DedupConf(**REPLACE))
         assert (out.patch >= 0).sum() == 50 and (out.patch < 0).sum() == num_plain
         got = _rows_of(plain, out.subset(out.patch < 0))
         expect = np.sort(rest[np.argsort(-plain.scales[rest], kind="stable")[:num_plain]])
@@ -188,7 +200,7 @@ def test_keep_all_plain_is_plain_sift_plus_the_largest_rectified_scales():
         expect = np.sort(np.argsort(-new.scales, kind="stable")[:room])
         np.testing.assert_array_equal(_rows_of(new, got_new), expect)
     # without keep_all_plain the oblique twins win and plain features make room
-    out = fill_from_plain(rect, plain, n, DedupConf(extra_frac=0.0))
+    out = fill_from_plain(rect, plain, n, DedupConf(**REPLACE))
     assert (out.patch < 0).sum() < n
 
 
@@ -223,15 +235,18 @@ def test_fill_from_plain_drops_rectified_features_that_crowd_a_plain_one():
     )
     cos = max_cosine(rect.descriptors, plain.descriptors)
     assert (cos[:5] > 0.99).all() and (cos[5:] < 0.9).all()
-    out = fill_from_plain(rect, plain, n, DedupConf(max_plain_cosine=0.9))
+    out = fill_from_plain(rect, plain, n, DedupConf(**{**REPLACE, "max_plain_cosine": 0.9}))
     got = out.subset(out.patch >= 0)
     np.testing.assert_array_equal(got.keypoints, rect.keypoints[5:])
     assert len(out) == n and (out.patch < 0).sum() == n - 5
     # off (the default): every rectified feature stays
-    assert ((fill_from_plain(rect, plain, n, DedupConf()).patch >= 0).sum()) == 10
+    assert ((fill_from_plain(rect, plain, n, DedupConf(**REPLACE)).patch >= 0).sum()) == 10
     # with extra_frac the dropped ones are not replaced: plain SIFT's features all stay
     out = fill_from_plain(
-        rect, plain, keypoint_cap(n, DedupConf(extra_frac=0.5)), DedupConf(max_plain_cosine=0.9)
+        rect,
+        plain,
+        keypoint_cap(n, DedupConf(**{**REPLACE, "extra_frac": 0.5})),
+        DedupConf(**{**REPLACE, "max_plain_cosine": 0.9}),
     )
     assert (out.patch < 0).sum() == n and (out.patch >= 0).sum() == 5
 
@@ -243,12 +258,12 @@ CAMERA = cam_utils.make_camera("PINHOLE", [420, 420, 240, 180], *SIZE)
 
 def test_pipeline_output_has_no_cross_source_twins_and_plain_sift_count():
     """A mildly tilted plane (the case that made twins): with dedup the output has no twin
-    between plain and rectified keypoints and as many keypoints as plain SIFT; without it,
-    a large fraction are twins."""
+    between plain and rectified keypoints and, in the replacing mode, as many keypoints as
+    plain SIFT; without it, a large fraction are twins."""
     texture = textured_image(900, 900, 11)
     R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])  # ~40 degrees from the plane normal
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
-    conf = ExtractConf()
+    conf = ExtractConf.from_dict(REPLACING)
     conf.sift.max_num_features = 2000
     plain = detect_sift(img, conf.sift)
     on = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
@@ -268,7 +283,7 @@ def test_pipeline_extra_frac_keeps_plain_sift_and_adds_rectified_features():
     texture = textured_image(900, 900, 11)
     R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
-    conf = ExtractConf()
+    conf = ExtractConf.from_dict(REPLACING)
     conf.sift.max_num_features = 2000
     conf.dedup.extra_frac = 0.5
     plain = detect_sift(img, conf.sift)
@@ -287,14 +302,15 @@ def test_pipeline_extra_frac_keeps_plain_sift_and_adds_rectified_features():
     assert len(parity) == len(plain) and (parity.patch < 0).sum() < len(kept)
 
 
-def test_pipeline_rectsift_plus_dedup_is_plain_sift_plus_uncrowded_features():
-    """rectsift-plus's dedup (plain twins kept, no rectified feature within cosine 0.9 of a
-    plain one, up to +50 %): the output holds every plain SIFT feature, unchanged, and
+def test_pipeline_default_is_plain_sift_plus_uncrowded_features():
+    """The default dedup (plain features all kept, no rectified feature within cosine 0.9 of
+    a plain one, up to +50 %): the output holds every plain SIFT feature, unchanged, and
     rectified ones on top, none of which crowds a plain feature."""
     texture = textured_image(900, 900, 11)
     R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
-    conf = ExtractConf.from_dict({"dedup": confs["rectsift-plus"]["dedup"]})
+    conf = ExtractConf()
+    assert conf.dedup.keep_all_plain and conf.dedup.max_plain_cosine == 0.9
     conf.sift.max_num_features = 2000
     plain = detect_sift(img, conf.sift)
     out = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
@@ -310,20 +326,21 @@ def test_pipeline_rectsift_plus_dedup_is_plain_sift_plus_uncrowded_features():
     conf.dedup.max_plain_cosine = 1.0
     more = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
     more_rect = more.subset(more.patch >= 0)
-    assert len(more_rect) > len(rect)
+    assert len(more_rect) >= len(rect)
     assert (max_cosine(more_rect.descriptors, plain.descriptors) > 0.9).any()
 
 
 def test_pipeline_exact_pool_is_plain_sift_where_coarse_first_pays():
-    """With a budget small enough for coarse-first (>= 500 pixels per feature), the pool of
-    rectsift-plus (``sift.pool_coarse_first`` off) is still exactly plain COLMAP SIFT's
-    features; a coarse-first pool is not (close, but not bit-identical)."""
+    """With a budget small enough for coarse-first (>= 500 pixels per feature), the default
+    pool of an image under ``sift.pool_coarse_first_min_pixels`` is still exactly plain
+    COLMAP SIFT's features; a coarse-first pool is not (close, but not bit-identical)."""
     texture = textured_image(900, 900, 11)
     R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
-    conf = ExtractConf.from_dict(confs["rectsift-plus"])
+    conf = ExtractConf()
     conf.sift.max_num_features = 300
-    assert coarse_first_pays(img.shape, 300, conf.sift) and not conf.sift.pool_coarse_first
+    assert coarse_first_pays(img.shape, 300, conf.sift) and conf.sift.pool_coarse_first
+    assert not pool_coarse_first(img.shape, 300, conf.sift)  # 480x360: under 3 MP
     plain = detect_sift(img, conf.sift)  # one exact COLMAP call
 
     def plain_part(c):
@@ -334,5 +351,6 @@ def test_pipeline_exact_pool_is_plain_sift_where_coarse_first_pays():
 
     exact = {k.tobytes() + d.tobytes() for k, d in zip(plain.keypoints, plain.descriptors)}
     assert plain_part(conf) == exact
-    conf.sift.pool_coarse_first = True
+    conf.sift.pool_coarse_first_min_pixels = 0  # as on a photo of 3 MP or more
+    assert pool_coarse_first(img.shape, 300, conf.sift)
     assert plain_part(conf) != exact

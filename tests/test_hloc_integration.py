@@ -358,14 +358,14 @@ def test_eval_hloc_sfm_script_over_seeds(sacre_coeur, tmp_path, capsys):
     script = load_script("eval_hloc_sfm")
     out = tmp_path / "out"
     argv = ["--images", str(sacre_coeur.images), "--output_dir", str(out), "--methods", "sift"]
-    argv += ["--variant", "plus=rectsift-plus", "--max_num_features", str(NUM_FEATURES)]
+    argv += ["--variant", "fast=rectsift-fast", "--max_num_features", str(NUM_FEATURES)]
     assert script.main(argv + ["--seeds", "0", "1"]) == 0
     rows = json.loads((out / "hloc_sfm.json").read_text())
     assert [(r["method"], r["seed"]) for r in rows] == [
         ("sift", 0),
         ("sift", 1),
-        ("plus", 0),
-        ("plus", 1),
+        ("fast", 0),
+        ("fast", 1),
     ]
     for r in rows:
         rec = pycolmap.Reconstruction(str(out / r["method"] / f"sfm-{r['seed']}"))
@@ -374,7 +374,7 @@ def test_eval_hloc_sfm_script_over_seeds(sacre_coeur, tmp_path, capsys):
         # hloc's mapper varies from run to run (even seeded); one run gave 3 images, 0 points
     assert sum(r["points"] for r in rows) > 0
     table = capsys.readouterr().out
-    for m in ("sift", "plus"):
+    for m in ("sift", "fast"):
         pts = " ".join(str(r["points"]) for r in rows if r["method"] == m)
         assert f"| {m} | " in table and f" | {pts} | " in table
     stamp = {f: f.stat().st_mtime_ns for f in out.glob("*/*.h5")}

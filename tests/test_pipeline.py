@@ -14,6 +14,7 @@ from rectified_colmap.pipeline import extract_image, timed
 from rectified_colmap.planes import Patch
 from rectified_colmap.rectify import patch_evidence, patches_worth_rectifying
 from tests.conftest import look_at, plane_view, textured_image
+from tests.scenes import REPLACING, SINGLE_VIEW
 
 K = np.array([[420.0, 0, 240], [0, 420, 180], [0, 0, 1]])
 SIZE = (480, 360)
@@ -60,16 +61,22 @@ def test_no_depth_and_no_planes_give_exactly_plain_sift(texture):
     R, t = look_at([1, -4, 3], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
     plain = detect_sift(img)
+    single = ExtractConf.from_dict(SINGLE_VIEW)
     for depth in (
         None,
         DepthMap(np.full((30, 40), np.nan)),  # no valid depth
         DepthMap(np.random.default_rng(0).uniform(1, 50, (90, 120))),
     ):  # noise
-        res = extract_image(img, CAMERA, depth)
+        res = extract_image(img, CAMERA, depth, single)
         assert not res.rectifications
         np.testing.assert_array_equal(res.features.keypoints, plain.keypoints)
         np.testing.assert_array_equal(res.features.descriptors, plain.descriptors)
         np.testing.assert_array_equal(res.features.shapes, plain.shapes)
+        # the default may add views from vanishing points, on top of every plain feature
+        out = extract_image(img, CAMERA, depth).features
+        kept = out.subset(out.patch < 0)
+        np.testing.assert_array_equal(kept.keypoints, plain.keypoints)
+        np.testing.assert_array_equal(kept.descriptors, plain.descriptors)
 
 
 def test_rectified_keypoints_lie_on_the_plane_consistently(texture):
@@ -77,7 +84,7 @@ def test_rectified_keypoints_lie_on_the_plane_consistently(texture):
     predict: A = J A_rect, checked against the homography between two views."""
     R0, t0 = look_at([0.5, -5, 3.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R0, t0, SIZE)
-    conf = ExtractConf()
+    conf = ExtractConf.from_dict(REPLACING)
     conf.rectify.keep_plain = False  # the paper's split: plain SIFT off the planes only
     res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
     assert len(res.rectifications) == 1
@@ -124,7 +131,7 @@ def test_rectified_sift_matches_more_than_plain_at_strong_viewpoint_change(textu
 def test_keep_plain_shares_the_budget_on_planes(texture):
     R0, t0 = look_at([0.5, -5, 3.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R0, t0, SIZE)
-    conf = ExtractConf()
+    conf = ExtractConf.from_dict(REPLACING)
     conf.sift.max_num_features = 2000
     assert conf.rectify.keep_plain
     f = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
@@ -182,7 +189,7 @@ def test_patch_evidence_viewing_angle_and_texture():
 
 
 def test_frontal_plane_is_left_to_plain_sift_oblique_one_is_rectified(texture):
-    conf = ExtractConf()
+    conf = ExtractConf.from_dict(SINGLE_VIEW)
     conf.rectify.min_rectify_angle_deg = 30.0
     R, t = look_at([0.3, -0.2, 4.0], [0, 0, 0], up=(0, 1, 0))  # ~5 deg: near-frontal
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)

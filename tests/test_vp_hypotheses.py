@@ -141,7 +141,7 @@ def test_pipeline_adds_the_plane_the_depth_missed():
     R, t = look_at([4.0, -2.0, 2.0], [0.0, 0.0, 0.0])
     img, depth = plane_view(facade_texture(), 8.0 / 512, K, R, t, (640, 480))
     camera = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
-    base = ExtractConf()
+    base = ExtractConf.from_dict({"vp": {"line_hypotheses": 0}})
     w, h = 320, 240
     frontal = np.broadcast_to(np.array([0.0, 0.0, -1.0]), (h, w, 3)).copy()
     plain = extract_image(img, camera, None, base, normals=frontal)

@@ -130,10 +130,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--conf",
         default="rectsift",
-        help=f"named configuration ({', '.join(confs)}; default %(default)s; "
-        "rectsift-plus: every plain SIFT feature plus rectified ones on top, the most "
-        "matches on strong viewpoint changes at up to 1.75x plain SIFT's time) or a JSON "
-        'file of overrides, e.g. {"rectify": {"max_viewing_angle_deg": 85}}',
+        help=f"named configuration ({', '.join(confs)}; default %(default)s: plain SIFT's "
+        "features and rectified ones on top) or a JSON file of overrides, e.g. "
+        '{"sift": {"max_num_features": 4096}}',
     )
     p.add_argument(
         "--orientation",
@@ -258,8 +257,11 @@ def apply_colmap_options(args: argparse.Namespace, conf) -> None:
 
 
 def _load_conf(spec: str, max_num_features: int | None):
-    from ..config import ExtractConf, confs
+    from ..config import RETIRED_CONFS, ExtractConf, confs
 
+    if spec in RETIRED_CONFS:
+        logger.warning("--conf %s is retired: %s; running the default", spec, RETIRED_CONFS[spec])
+        spec = "rectsift"
     if spec in confs:
         conf = ExtractConf.from_dict(confs[spec])
     else:
