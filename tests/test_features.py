@@ -197,15 +197,23 @@ def test_patch_first_octave_from_pixels_per_feature_after_downscaling():
 
 
 def test_plain_path_uses_coarse_first_only_where_it_pays():
-    """An image without planes: coarse-first SIFT where the coarser octaves fill the budget,
-    else (or with sift.coarse_first off) exactly one COLMAP call."""
+    """An image without planes: coarse-first SIFT where the coarser octaves fill the budget
+    on an image of at least sift.pool_coarse_first_min_pixels, else (or with
+    sift.coarse_first off) exactly one COLMAP call."""
     from rectified_colmap import camera as cam_utils
     from rectified_colmap.config import ExtractConf
     from rectified_colmap.pipeline import extract_image
+    from tests.scenes import SINGLE_VIEW
 
     img = textured_image(300, 400, 7)
     camera = cam_utils.make_camera("PINHOLE", [400, 400, 200, 150], 400, 300)
-    conf = ExtractConf()
+    conf = ExtractConf.from_dict(SINGLE_VIEW)  # no views from the texture's lines
+    # the default: a 0.12 MP image is under the pixel threshold, the call is exact
+    assert conf.sift.pool_coarse_first_min_pixels > 400 * 300
+    conf.sift.max_num_features = 150
+    out = extract_image(img, camera, None, conf).features
+    np.testing.assert_array_equal(out.keypoints, detect_sift(img, conf.sift, 150).keypoints)
+    conf.sift.pool_coarse_first_min_pixels = 400 * 300
     for n, pays in ((150, True), (2000, False)):
         conf.sift.max_num_features = n
         assert coarse_first_pays(img.shape, n, conf.sift) == pays

@@ -24,6 +24,7 @@ from rectified_colmap.vp.line_planes import (
     whole_image_patches,
 )
 from rectified_colmap.vp.segments import Segments
+from tests.scenes import REPLACING
 
 W, H = 480, 360
 
@@ -47,7 +48,9 @@ def views():
 
 
 def _depth_free_conf():
-    conf = ExtractConf()
+    # one view per line-support patch, in the replacing mode whose budget shares these
+    # tests check (no plane hypotheses, no tilt neighbours, no features on top)
+    conf = ExtractConf.from_dict(REPLACING)
     conf.vp.depth_free = True
     # These tests are about the planes lines give; the rule that leaves near-frontal
     # patches to plain SIFT (tested in test_pipeline.py) would drop most of this view's.
