@@ -11,7 +11,7 @@ through the same code; ``rectsift``: the default configuration and embedded netw
 one run cannot tell two feature sets apart that differ by less: compare the means and the
 per-seed differences (docs/evaluation.md).
 
-    python scripts/eval_hloc_sfm.py --output_dir OUT --variant plus=rectsift-plus
+    python scripts/eval_hloc_sfm.py --output_dir OUT --variant fast=rectsift-fast
     python scripts/eval_hloc_sfm.py --images DIR --output_dir OUT --seeds 0 1 2
 
 Writes ``OUT/<method>/`` (features, pairs, matches, one model per seed), ``OUT/hloc_sfm.json``

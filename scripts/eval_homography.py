@@ -12,7 +12,8 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
    - ``oracle``: the pipeline with the plane orientation taken from the ground-truth
      homography, decomposed with the guessed intrinsics (one plane over the whole image,
      normal n0 in image 0 and R n0 in image 1): the upper bound of rectification itself;
-   - extra variants with ``--variant NAME=JSON`` (conf overrides; ``"_base": "oracle"``
+   - extra variants with ``--variant NAME=JSON`` or ``NAME=CONF`` (conf overrides or a named
+     configuration such as ``rectsift-fast``; ``"_base": "oracle"``
      in the JSON makes it a variant of ``oracle``, else of ``rectsift``);
 2. homography evaluation in both directions of every pair (rectified_colmap.eval.homography;
    a pair's ``region0``, where the file gives one, restricts its errors and GT-consistent
@@ -39,7 +40,7 @@ import cv2
 import numpy as np
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.config import ExtractConf, merge_conf
+from rectified_colmap.config import ExtractConf, confs, merge_conf
 from rectified_colmap.eval.homography import (
     HomographyConf,
     evaluate_homography_pairs,
@@ -163,8 +164,8 @@ def main(argv=None) -> int:
     for spec in args.variant:
         name, sep, js = spec.partition("=")
         if not sep or not name or name in METHODS or name in args.variants:
-            raise SystemExit(f"--variant {spec!r}: expected a new NAME=JSON")
-        args.variants[name] = json.loads(js)
+            raise SystemExit(f"--variant {spec!r}: expected a new NAME=JSON or NAME=CONF")
+        args.variants[name] = dict(confs[js]) if js in confs else json.loads(js)
     pairs = read_homography_pairs(args.data / "pairs.json", args.data)
     names = list(dict.fromkeys(n for q in pairs for n in (q.im0, q.im1)))
     sizes = {}

@@ -18,7 +18,7 @@ add tables by viewpoint change):
 
 ``--plain_budget N`` adds plain SIFT with another budget (method ``sift@N``) and a paired
 table against it: the control for methods that output more keypoints than plain SIFT with
-the same budget (e.g. ``rectsift-plus``).
+the same budget (e.g. ``rectsift-fast``).
 
 Example (plain SIFT only)::
 

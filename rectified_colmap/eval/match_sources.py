@@ -1,6 +1,6 @@
 """Where a feature set's matches come from, beside plain SIFT's (superset bookkeeping).
 
-A rectified feature set that keeps plain SIFT's features and adds others (``rectsift-plus``)
+A rectified feature set that keeps plain SIFT's features and adds others (the default)
 can still lose plain SIFT's matches: an added feature whose descriptor is close to a plain
 one becomes the second-nearest neighbour of that plain feature's true match, and Lowe's
 ratio test rejects it ("crowding"). This module tells, per image pair, how many of plain
