@@ -32,6 +32,19 @@ def skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
+def axis_angle_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """The rotation by ``angle`` (radians) about the unit vector ``axis`` (Rodrigues).
+
+    Args:
+        axis: (3,) unit vector (not normalised here).
+        angle: radians, counter-clockwise looking down ``axis``.
+    Returns:
+        (3, 3) float64 R.
+    """
+    K = skew(np.asarray(axis, dtype=np.float64).reshape(3))
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+
+
 def smallest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The rotation of smallest angle taking unit vector a onto unit vector b.
 
@@ -58,10 +71,7 @@ def smallest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         u = e - (e @ b) * b
         u = u / np.linalg.norm(u)
         return 2.0 * np.outer(u, u) - np.eye(3)
-    axis = axis / s
-    angle = np.arctan2(s, c)
-    K = skew(axis)
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+    return axis_angle_rotation(axis / s, np.arctan2(s, c))
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

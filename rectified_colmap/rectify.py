@@ -25,7 +25,7 @@ import pycolmap
 from . import camera as cam_utils
 from .config import RectifyConf
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
-from .geometry import smallest_rotation
+from .geometry import axis_angle_rotation, smallest_rotation
 from .planes import Patch
 
 logger = logging.getLogger(__name__)
@@ -441,16 +441,15 @@ def tilt_neighbours(
     if np.linalg.norm(axis) < 1e-9:
         return []
     axis /= np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     out = []
     for k in [k for k in range(-steps, steps + 1) if k != 0]:
         cos_k = cos0 / factor**k
         if not np.cos(np.deg2rad(89.0)) <= cos_k <= 1.0:
             continue
         delta = np.arccos(cos_k) - np.arccos(cos0)  # > 0: more tilt
-        # Rodrigues: rotating n about n x v by +delta moves it away from -v (more tilt)
-        R = np.eye(3) + np.sin(delta) * K + (1 - np.cos(delta)) * (K @ K)
-        out.append(Patch(patch.mask, patch.axis, R @ n, patch.area_frac))
+        # rotating n about n x v by +delta moves it away from -v (more tilt)
+        normal = axis_angle_rotation(axis, delta) @ n
+        out.append(Patch(patch.mask, patch.axis, normal, patch.area_frac))
     return out
 
 
@@ -458,8 +457,8 @@ def with_tilt_neighbours(
     camera: pycolmap.Camera, patches: list[Patch], todo: list[int], conf: RectifyConf
 ) -> tuple[list[Patch], list[int]]:
     """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
-    of those in ``todo`` seen at conf.tilt_bank_min_angle_deg or more, and ``todo`` with
-    their indices (each neighbour right after the patches it was made from)."""
+    of those in ``todo`` seen at conf.tilt_bank_min_angle_deg or more (appended after all
+    of ``patches``, each a patch of its own), and ``todo`` with their indices added."""
     if conf.tilt_steps <= 0 or not todo:
         return patches, todo
     angle = viewing_angles(camera, [patches[i] for i in todo])

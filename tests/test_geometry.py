@@ -223,3 +223,20 @@ def test_line_angle_deg_is_sign_free():
     assert np.allclose(d, np.minimum(full, 180.0 - full), atol=1e-9)
     assert line_angle_deg(a[0], -a[0]) < 1e-5  # arccos near 1: ~1e-6 deg from rounding
     assert line_angle_deg(np.array([1.0, 0, 0]), np.array([0, 1.0, 0])) == 90.0
+
+
+def test_axis_angle_rotation_exact():
+    from rectified_colmap.geometry import axis_angle_rotation
+
+    R = axis_angle_rotation([0.0, 0.0, 1.0], np.pi / 2)
+    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-15)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = rng.uniform(-np.pi, np.pi)
+        R = axis_angle_rotation(axis, angle)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(R @ axis, axis, atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        assert rotation_angle_deg(R) == pytest.approx(np.degrees(abs(angle)))
