@@ -126,6 +126,18 @@ def extract_method(
     return h5
 
 
+def parse_variants(specs: list[str]) -> dict[str, dict]:
+    """``--variant`` values -> {name: conf overrides}: NAME=JSON, or NAME=CONF for a named
+    configuration (a copy of ``confs[CONF]``). A name must be new and not a method's."""
+    variants: dict[str, dict] = {}
+    for spec in specs:
+        name, sep, js = spec.partition("=")
+        if not sep or not name or name in METHODS or name in variants:
+            raise SystemExit(f"--variant {spec!r}: expected a new NAME=JSON or NAME=CONF")
+        variants[name] = dict(confs[js]) if js in confs else json.loads(js)
+    return variants
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, required=True, help="folder with pairs.json, images/")
@@ -160,12 +172,7 @@ def main(argv=None) -> int:
     )
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
-    args.variants = {}
-    for spec in args.variant:
-        name, sep, js = spec.partition("=")
-        if not sep or not name or name in METHODS or name in args.variants:
-            raise SystemExit(f"--variant {spec!r}: expected a new NAME=JSON or NAME=CONF")
-        args.variants[name] = dict(confs[js]) if js in confs else json.loads(js)
+    args.variants = parse_variants(args.variant)
     pairs = read_homography_pairs(args.data / "pairs.json", args.data)
     names = list(dict.fromkeys(n for q in pairs for n in (q.im0, q.im1)))
     sizes = {}

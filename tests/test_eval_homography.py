@@ -345,3 +345,17 @@ def test_region_ransac_estimates_from_the_region_only():
     a = evaluate_homography_pairs([whole], {"m": feats}, HomographyConf(), False)
     b = evaluate_homography_pairs([whole], {"m": feats}, HomographyConf(region_ransac=True), False)
     assert a == b
+
+
+def test_script_variants_take_json_or_a_named_conf():
+    from rectified_colmap.config import confs
+    from tests.scripts_util import load_script
+
+    script = load_script("eval_homography")
+    v = script.parse_variants(['a={"rectify": {"tilt_steps": 0}}', "fast=rectsift-fast"])
+    assert v == {"a": {"rectify": {"tilt_steps": 0}}, "fast": confs["rectsift-fast"]}
+    v["fast"]["_base"] = "oracle"  # a copy: the named conf is not changed
+    assert "_base" not in confs["rectsift-fast"]
+    for bad in (["sift={}"], ["x"], ["a={}", "a={}"]):
+        with pytest.raises(SystemExit):
+            script.parse_variants(bad)
