@@ -270,3 +270,18 @@ def test_mask_path_drops_keypoints_where_the_mask_is_black(images, tmp_path, cap
         hloc_h5.read(h5_masked, "b/2.png")["keypoints"],
         hloc_h5.read(h5_plain, "b/2.png")["keypoints"],
     )
+
+
+def test_retired_conf_names_warn_and_run_the_default(caplog):
+    """--conf rectsift-wide / rectsift-plus (earlier confs for extreme viewpoints): a WARNING
+    that says why, then exactly the default configuration."""
+    from rectified_colmap.cli.extract import _load_conf
+    from rectified_colmap.config import RETIRED_CONFS, ExtractConf
+
+    for name in ("rectsift-wide", "rectsift-plus"):
+        assert name in RETIRED_CONFS
+        caplog.clear()
+        with caplog.at_level("WARNING"):
+            conf = _load_conf(name, None)
+        assert conf == ExtractConf()
+        assert any(f"--conf {name} is retired" in r.getMessage() for r in caplog.records)
