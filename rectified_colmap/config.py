@@ -361,8 +361,13 @@ confs: dict[str, dict[str, Any]] = {
         "rectify": {"tilt_steps": 0, "max_total_pixels": 0.5e6},
         "sift": {"max_num_features": 4096},
     },
-    # no patch can pass, exact COLMAP calls: exactly plain SIFT
-    "sift": {"planes": {"min_area_frac": 2.0}, "sift": {"coarse_first": False}},
+    # exactly plain COLMAP SIFT, whatever the depth: no patch can pass, no vanishing points
+    # (no plane hypotheses), exact COLMAP calls
+    "sift": {
+        "planes": {"min_area_frac": 2.0},
+        "vp": {"enabled": False, "line_hypotheses": 0},
+        "sift": {"coarse_first": False},
+    },
 }
 
 RETIRED_CONFS: dict[str, str] = {

@@ -229,3 +229,25 @@ def test_timings_keys(texture):
         "warps+sift_patches",
         "dedup",
     ]
+
+
+def test_sift_conf_is_plain_sift_whatever_the_depth():
+    """`--conf sift` is the plain-SIFT baseline even with a depth network or files: no
+    depth patch, no plane hypothesis from vanishing points (the default's are whole-image
+    views that need no depth patch), exact COLMAP calls. The same view with the default
+    conf is rectified, so the test sees the difference."""
+    from rectified_colmap.camera import make_camera
+    from rectified_colmap.config import confs
+    from tests.scenes import street_pair
+
+    view, _ = street_pair(3)
+    h, w = view["depth"].shape
+    K = view["camera"].calibration_matrix()
+    camera = make_camera("PINHOLE", [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], w, h)
+    depth = DepthMap(view["depth"].astype(np.float32), "depth")
+    plain = extract_image(view["image"], camera, None, ExtractConf.from_dict(confs["sift"]))
+    res = extract_image(view["image"], camera, depth, ExtractConf.from_dict(confs["sift"]))
+    assert not res.rectifications
+    np.testing.assert_array_equal(res.features.keypoints, plain.features.keypoints)
+    np.testing.assert_array_equal(res.features.descriptors, plain.features.descriptors)
+    assert extract_image(view["image"], camera, depth).rectifications  # the default rectifies
