@@ -1,4 +1,15 @@
-"""rectified-colmap: SIFT on depth-rectified planes, for COLMAP and hloc."""
+"""rectified-colmap: SIFT on depth-rectified planes, for COLMAP and hloc.
+
+The public API (docs/usage.md, "Python")::
+
+    from rectified_colmap import extract, extract_image, ExtractConf, confs
+
+    extract("images/", database="db.db", conf=confs["rectsift-fast"])   # a folder -> COLMAP
+    result = extract_image(image, camera, depth, ExtractConf())           # one image
+
+Everything else is reachable through its module (rectified_colmap.io.colmap_db, ...), but
+only the names in ``__all__`` are promised to stay.
+"""
 
 # Python's zlib must be loaded before pycolmap: the pycolmap 4.2.1 wheel exports zlib
 # symbols of its own, and a process that loads zlib after it (every PNG save through
@@ -12,3 +23,41 @@ __version__ = "0.1.0"
 
 logger = logging.getLogger("rectified_colmap")
 logger.addHandler(logging.NullHandler())
+
+from .config import (  # noqa: E402  (after zlib)
+    DedupConf,
+    DepthConf,
+    ExtractConf,
+    NormalConf,
+    PlaneConf,
+    RectifyConf,
+    SiftConf,
+    VpConf,
+    confs,
+    merge_conf,
+)
+from .depth import DepthMap  # noqa: E402
+from .extraction import extract  # noqa: E402
+from .features import Features  # noqa: E402
+from .pipeline import ImageResult, extract_image  # noqa: E402
+
+__all__ = [
+    # entry points: a folder of images -> COLMAP database / hloc HDF5; one image -> features
+    "extract",
+    "extract_image",
+    # what they return
+    "ImageResult",
+    "Features",
+    "DepthMap",
+    # configuration (docs/configuration.md)
+    "ExtractConf",
+    "NormalConf",
+    "PlaneConf",
+    "RectifyConf",
+    "SiftConf",
+    "DedupConf",
+    "DepthConf",
+    "VpConf",
+    "confs",
+    "merge_conf",
+]

@@ -18,7 +18,7 @@ import pycolmap
 
 from . import synth
 from .config import DEFAULT_DEPTH_MODEL
-from .extract import extract
+from .extraction import extract
 from .geometry import rotation_angle_deg
 
 logger = logging.getLogger(__name__)

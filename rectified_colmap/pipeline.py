@@ -93,27 +93,23 @@ def orient_with_vanishing_points(
     conf: ExtractConf,
     rng: np.random.Generator,
     segments: Segments | None = None,
-) -> tuple[PlaneResult, bool]:
+) -> PlaneResult:
     """Depth says WHICH pixels form planes, lines say HOW they are oriented: when a direction
     snapped to a trusted vanishing direction, each patch takes its fused direction (with the
     patch's sign; unsnapped directions are rotated with the snapped ones); patches of a
-    direction the lines contradict keep their depth normal, or are dropped with
-    conf.vp.drop_contradicted. ``segments``: the image's, if already detected. Returns the
-    planes and whether any direction snapped (the lines oriented the planes)."""
+    direction the lines contradict keep their depth normal. ``segments``: the image's, if
+    already detected."""
     vp = refine_directions(gray, camera, planes.directions, conf.vp, rng=rng, segments=segments)
     if vp.directions is None:
-        return planes, False
+        return planes
     patches = []
     for patch in planes.patches:
         k = patch.axis
-        if vp.contradicted[k]:
-            if conf.vp.drop_contradicted:
-                continue
-        elif vp.snapped.any():
+        if not vp.contradicted[k] and vp.snapped.any():
             d = vp.directions[k]
             patch = replace(patch, normal=d * np.sign(d @ patch.normal))
         patches.append(patch)
-    return replace(planes, directions=vp.directions, patches=patches), bool(vp.snapped.any())
+    return replace(planes, directions=vp.directions, patches=patches)
 
 
 def add_plane_hypotheses(
@@ -174,14 +170,9 @@ def extract_image(
         with timed(t, "vp"):
             # depth-free: the segments its frame was fitted to
             segments = lines.segments if depth_free else image_segments(gray, camera, conf.vp)
-            oriented = False
             if orient:
-                planes, oriented = orient_with_vanishing_points(
-                    gray, camera, planes, conf, rng, segments
-                )
-            if conf.vp.line_hypotheses > 0 and not (
-                oriented and conf.vp.hypotheses_only_unoriented
-            ):
+                planes = orient_with_vanishing_points(gray, camera, planes, conf, rng, segments)
+            if conf.vp.line_hypotheses > 0:
                 planes = add_plane_hypotheses(camera, planes, segments, conf)
 
     with timed(t, "homographies"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pycolmap
 
 from rectified_colmap import synth
 from rectified_colmap.eval.pairs import Pair
@@ -90,3 +91,42 @@ def street_views_folder(folder, seed: int, width: int, height: int, focal: float
         cv2.imwrite(str(folder / "images" / name), r.image[..., ::-1])
         renders[name] = r
     return rec, renders, rng
+
+
+# -- a synthetic SfM model: cameras on a ring around the origin -------------------------
+
+
+def ring_camera(azimuth_deg: float, radius: float = 10.0) -> pycolmap.Rigid3d:
+    """cam_from_world of a camera on a circle in the x-z plane looking at the origin."""
+    a = np.radians(azimuth_deg)
+    c = radius * np.array([np.sin(a), 0.0, -np.cos(a)])
+    z = -c / np.linalg.norm(c)
+    y = np.array([0.0, 1.0, 0.0])
+    R = np.stack([np.cross(y, z), y, z])
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
+
+
+def ring_reconstruction(azimuths, tracks, points) -> pycolmap.Reconstruction:
+    """A model of PINHOLE cameras on a ring (``ring_camera``) at ``azimuths`` (degrees) and
+    3D ``points`` seen by the cameras of their ``tracks`` (lists of camera indices)."""
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[500, 500, 320, 240])
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    n_obs = [sum(k in t for t in tracks) for k in range(len(azimuths))]
+    for k, az in enumerate(azimuths):
+        im = pycolmap.Image(
+            name=f"im{k}.jpg",
+            camera_id=1,
+            image_id=k + 1,
+            points2D=[pycolmap.Point2D(np.array([320.0, 240.0])) for _ in range(n_obs[k])],
+        )
+        rec.add_image_with_trivial_frame(im, ring_camera(az))
+    used = [0] * len(azimuths)
+    for xyz, t in zip(points, tracks):
+        track = pycolmap.Track()
+        for k in t:
+            track.add_element(k + 1, used[k])
+            used[k] += 1
+        rec.add_point3D(xyz, track)
+    return rec

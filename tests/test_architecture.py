@@ -20,7 +20,7 @@ PKG = ROOT / "rectified_colmap"
 # Stage of each module (dotted name under rectified_colmap; a package covers its modules
 # unless a longer name is listed). A module may import its own stage and lower ones.
 LEVELS = {
-    "": 0,  # rectified_colmap/__init__.py
+    "": 13,  # rectified_colmap/__init__.py: the public API, re-exported from the stages
     "config": 0,
     "errors": 0,  # one-line messages of the CLI and the scripts
     "conventions": 0,
@@ -48,8 +48,7 @@ LEVELS = {
     "io.merge": 8,  # writers of Features
     "pipeline": 9,
     "viz": 9,
-    "extract": 10,
-    "distributed": 10,  # distributed and extract call each other
+    "extraction": 10,
     "synth": 11,
     "eval": 11,
     "training": 11,
@@ -115,12 +114,15 @@ def _graph() -> dict[str, set[str]]:
 
 
 def _level(name: str) -> int | None:
-    while True:
+    """The stage of a module: its own entry or its package's (the top package's entry, the
+    public API of __init__.py, covers no module)."""
+    if name == "":
+        return LEVELS[""]
+    while name:
         if name in LEVELS:
             return LEVELS[name]
-        if not name:
-            return None
         name = name.rpartition(".")[0]
+    return None
 
 
 def test_every_module_has_a_stage():
@@ -176,9 +178,11 @@ def test_cli_is_a_thin_layer_nobody_imports():
     assert not cross, f"CLI modules importing each other (shared code belongs below): {cross}"
 
 
-@pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "scripts").glob("*.py")))
+@pytest.mark.parametrize(
+    "script", sorted(p.name for p in (ROOT / "research" / "scripts").glob("*.py"))
+)
 def test_scripts_use_the_installed_package(script):
-    text = (ROOT / "scripts" / script).read_text()
+    text = (ROOT / "research" / "scripts" / script).read_text()
     tree = ast.parse(text)
     modules = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     modules |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
@@ -203,3 +207,85 @@ def test_module_map_lists_every_module():
     assert not missing, f"docs/architecture.md's module map lacks {missing}"
     gone = sorted(e for e in listed if not (PKG / e.rstrip("/")).exists())
     assert not gone, f"docs/architecture.md's module map lists missing files {gone}"
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, on, stack, out = {}, {}, set(), [], []
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on.add(root)
+        while work:
+            node, it = work[-1]
+            for nxt in it:
+                if nxt not in graph:
+                    continue
+                if nxt not in index:
+                    index[nxt] = low[nxt] = len(index)
+                    stack.append(nxt)
+                    on.add(nxt)
+                    work.append((nxt, iter(sorted(graph[nxt]))))
+                    break
+                if nxt in on:
+                    low[node] = min(low[node], index[nxt])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    comp = []
+                    while True:
+                        m = stack.pop()
+                        on.discard(m)
+                        comp.append(m)
+                        if m == node:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycle_among_the_modules():
+    cycles = _cycles(_graph())
+    assert not cycles, f"modules importing each other (directly or around a loop): {cycles}"
+
+
+def test_runtime_loads_no_file_by_path_and_imports_no_research_code():
+    """The wheel stands alone: no module loads code by file path (scripts are not
+    installed), and nothing imports the research folder (not installed either)."""
+    bad = []
+    for name, path in MODULES.items():
+        text = path.read_text()
+        if "spec_from_file_location" in text or "run_path(" in text:
+            bad.append(f"{name}: loads code by file path")
+        tree = ast.parse(text)
+        for node in ast.walk(tree):
+            mods = (
+                [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else []
+            )
+            bad += [
+                f"{name}: imports {m}" for m in mods if m.startswith("rectified_colmap_research")
+            ]
+    assert not bad, bad
+
+
+def test_the_wheel_holds_the_runtime_only():
+    """pyproject.toml packages rectified_colmap* only: research/ (training, scripts, their
+    data) is its own project."""
+    text = (ROOT / "pyproject.toml").read_text()
+    assert 'include = ["rectified_colmap*"]' in text
+    assert not (PKG / "training").exists()
+    assert (ROOT / "research" / "pyproject.toml").is_file()

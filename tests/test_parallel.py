@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import parallel
-from rectified_colmap.extract import extract
+from rectified_colmap.extraction import extract
 from rectified_colmap.io import hloc_h5
 from rectified_colmap.synth.planar import look_at, plane_view, textured_image
 
@@ -103,7 +103,7 @@ def use_thread_pools(rng):
 
 
 if __name__ == "__main__":
-    from rectified_colmap.extract import extract
+    from rectified_colmap.extraction import extract
 
     images, out = Path(sys.argv[1]), Path(sys.argv[2])
     repeats, params = int(sys.argv[3]), sys.argv[4]
@@ -189,7 +189,7 @@ def test_unguarded_script_fails_in_one_line_instead_of_hanging(views, tmp_path):
     script.write_text(
         textwrap.dedent(
             f"""
-            from rectified_colmap.extract import extract
+            from rectified_colmap.extraction import extract
             extract({str(views)!r}, database={str(tmp_path / "u.db")!r},
                     camera_model="PINHOLE", camera_params="{PARAMS}", depth_model="none",
                     num_workers=2, progress=False)
@@ -230,5 +230,5 @@ def test_worker_logs_are_replayed_in_the_parent(caplog):
 
 def test_start_method_is_never_fork():
     assert parallel.start_method() in ("forkserver", "spawn")
-    ctx = parallel.context(["rectified_colmap.extract.run"])
+    ctx = parallel.context(["rectified_colmap.extraction.run"])
     assert ctx.get_start_method() == parallel.start_method()

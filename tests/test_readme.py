@@ -82,3 +82,49 @@ def _db_rows(db: Path) -> dict:
         }
     finally:
         con.close()
+
+
+REFERENCE_PAGES = [
+    README,
+    *(
+        README.parent / "docs" / f"{n}.md"
+        for n in ("usage", "formats", "hloc", "depth-models", "results", "evaluation")
+    ),
+]
+
+
+def paragraphs(text: str) -> list[str]:
+    """Runs of non-empty lines outside fenced code, tables and headings."""
+    text = re.sub(r"```.*?```", "\n\n", text, flags=re.S)
+    out, cur = [], []
+    for line in text.splitlines() + [""]:
+        if not line.strip() or line.lstrip().startswith(("|", "#")):
+            if cur:
+                out.append(" ".join(cur))
+            cur = []
+        else:
+            cur.append(line.strip())
+    return out
+
+
+def test_paragraph_splitter():
+    text = "a b\nc\n\n| t | t |\n|---|\nd e f\n```\ng h i j\n```\n# k l\nm"
+    assert [len(p.split()) for p in paragraphs(text)] == [3, 3, 1]
+
+
+@pytest.mark.parametrize("page", REFERENCE_PAGES, ids=lambda p: p.name)
+def test_reference_pages_have_no_paragraph_over_150_words(page):
+    long = [p[:60] for p in paragraphs(page.read_text()) if len(p.split()) > 150]
+    assert not long, f"{page.name}: paragraphs over 150 words: {long}"
+
+
+def test_conf_chooser_lists_every_named_conf_and_the_python_block_imports():
+    from rectified_colmap.config import confs
+
+    text = README.read_text()
+    rows = re.findall(r"^\| `([\w-]+)`", text, flags=re.M)
+    for name in confs:
+        assert name in rows, f"README's conf table lacks {name}"
+    block = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    imports = "\n".join(ln for ln in block.splitlines() if ln.startswith(("from ", "import ")))
+    exec(compile(imports, "README.md", "exec"), {})

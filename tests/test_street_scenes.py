@@ -10,7 +10,7 @@ import pycolmap
 import pytest
 
 from rectified_colmap.cli import main
-from rectified_colmap.config import EvalConf
+from rectified_colmap.eval.config import EvalConf
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.eval.matching import FeatureSource
 from rectified_colmap.eval.relpose import evaluate_pair

@@ -12,7 +12,7 @@ import pytest
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap import viz
-from rectified_colmap.extract import extract
+from rectified_colmap.extraction import extract
 from rectified_colmap.features import Features
 from rectified_colmap.pipeline import ImageResult
 from rectified_colmap.planes import Patch, PlaneResult

@@ -12,7 +12,7 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..config import EvalConf, HomographyConf
+    from ..eval.config import EvalConf, HomographyConf
 
     e, hc = EvalConf(), HomographyConf()  # the defaults the help texts show
     p = sub.add_parser(
@@ -151,7 +151,7 @@ def run_homography(args: argparse.Namespace) -> int:
 
 
 def make_conf(args: argparse.Namespace):
-    from ..config import EvalConf
+    from ..eval.config import EvalConf
 
     conf = EvalConf()
     for key in ("ratio", "ransac_max_error", "ransac_runs", "bin_deg", "epipolar_threshold"):

@@ -281,7 +281,7 @@ def _load_conf(spec: str, max_num_features: int | None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..extract import extract
+    from ..extraction import extract
 
     if args.database is None and args.hloc_features is None:
         raise UsageError("give --database and/or --hloc_features")

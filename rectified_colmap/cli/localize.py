@@ -12,7 +12,7 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..config import LocalizeConf
+    from ..eval.config import LocalizeConf
 
     c = LocalizeConf()  # the defaults the help texts show
     p = sub.add_parser(
@@ -76,7 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import pycolmap
 
-    from ..config import LocalizeConf
+    from ..eval.config import LocalizeConf
     from ..eval.aachen import read_query_list
     from ..eval.localize import accuracy_table, localize_with_model, write_poses
 

@@ -21,7 +21,7 @@ API generation this code does not know).
 - localize_sfm's silent fallback (a query it cannot localize gets the pose of its first
   retrieved image): :func:`localize_sfm_fallbacks` reads them back from hloc's log;
 - database images with the reference model's intrinsics: :func:`write_camera_database`
-  (rectified_colmap.extract reads the cameras of an existing database);
+  (rectified_colmap.extraction reads the cameras of an existing database);
 - a mini Aachen from a posed scene (:func:`make_mini_aachen`, e.g. Strecha fountain-P11)
   with held-out queries and their ground truth, and :func:`localization_errors`;
 - keypoint orientations for LightGlue's SIFT mode (radians, :func:`oris_for_lightglue`).
@@ -329,7 +329,7 @@ def localize_sfm_fallbacks(results: Path | str) -> list[str]:
 
 def write_camera_database(path: Path | str, cameras: Mapping[str, pycolmap.Camera]) -> int:
     """A COLMAP database with one camera per image (identical cameras shared) and no
-    features: ``rectified_colmap.extract.extract(database=path)`` then uses these cameras
+    features: ``rectified_colmap.extraction.extract(database=path)`` then uses these cameras
     instead of EXIF or a guess. Returns the number of cameras written."""
     path = Path(path)
     if path.exists():

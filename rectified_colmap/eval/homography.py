@@ -49,7 +49,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..config import HomographyConf  # noqa: F401 (part of this module's API)
+from .config import HomographyConf  # noqa: F401 (part of this module's API)
 from ..conventions import from_opencv_points
 from .matching import FeatureSource, match_ratio
 

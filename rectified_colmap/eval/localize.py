@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..config import LocalizeConf
+from .config import LocalizeConf
 from ..geometry import rotation_angle_deg
 from .matching import FeatureSource, match_ratio
 from .relpose import sampson_error, fundamental_from_pose

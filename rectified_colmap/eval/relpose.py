@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import EvalConf
+from .config import EvalConf
 from ..geometry import angle_between_deg, rotation_angle_deg, skew
 from ..parallel import context
 from ..progress import progress_bar

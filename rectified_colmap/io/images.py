@@ -6,7 +6,7 @@ the stored pixels, read from the file header for JPEG and PNG (no decode; a 24-m
 JPEG takes ~0.3 s to decode) and by decoding for other formats.
 
 Errors about one image are :class:`ImageError` with the cause only: callers that report
-per image add the image's name (rectified_colmap.extract). A truncated JPEG is decoded with
+per image add the image's name (rectified_colmap.extraction). A truncated JPEG is decoded with
 this module's one-line warning only: libjpeg's own ``Premature end of JPEG file``, which
 the C library inside OpenCV prints on the process's stderr, is silenced
 (:func:`c_stderr_silenced`).

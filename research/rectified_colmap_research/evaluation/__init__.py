@@ -1,0 +1,1 @@
+"""Evaluation helpers of the research scripts (not used by the runtime CLI)."""
