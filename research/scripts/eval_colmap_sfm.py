@@ -31,6 +31,7 @@ import numpy as np
 import pycolmap
 
 from rectified_colmap.errors import run_script
+from rectified_colmap_research.evaluation.methods import add_variant_argument
 from rectified_colmap_research.evaluation.colmap_sfm import (
     best_model,
     conf_args,
@@ -95,13 +96,7 @@ def main(argv=None):
         help="sift (colmap feature_extractor), rectsift (the default configuration) or "
         "another named configuration of rectified-colmap",
     )
-    p.add_argument(
-        "--variant",
-        action="append",
-        default=[],
-        metavar="NAME=JSON|CONF",
-        help="an extra rectified method: conf overrides as JSON, or a named configuration",
-    )
+    add_variant_argument(p)
     p.add_argument("--max_num_features", type=int, default=8192)
     p.add_argument("--num_workers", type=int, default=1, help="rectified-colmap workers")
     args = p.parse_args(argv)

@@ -30,6 +30,7 @@ import numpy as np
 
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.methods import (
+    add_variant_argument,
     depth_model_of,
     method_conf,
     parse_variants,
@@ -123,13 +124,7 @@ def main(argv=None) -> int:
     p.add_argument(
         "--methods", nargs="+", default=["sift", "rectsift"], choices=["sift", "rectsift"]
     )
-    p.add_argument(
-        "--variant",
-        action="append",
-        default=[],
-        metavar="NAME=JSON|CONF",
-        help="an extra rectified method: conf overrides as JSON, or a named configuration",
-    )
+    add_variant_argument(p)
     p.add_argument("--seeds", type=int, nargs="+", default=list(range(8)))
     p.add_argument("--max_num_features", type=int, default=8192)
     args = p.parse_args(argv)

@@ -53,7 +53,11 @@ from rectified_colmap.eval.homography import (
 from rectified_colmap.geometry import scaled_size
 from rectified_colmap.pipeline import extract_image
 from rectified_colmap.errors import run_script
-from rectified_colmap_research.evaluation.methods import method_conf, parse_variants
+from rectified_colmap_research.evaluation.methods import (
+    add_variant_argument,
+    method_conf,
+    parse_variants,
+)
 
 logger = logging.getLogger("eval_homography")
 METHODS = ("sift", "rectsift", "oracle")
@@ -134,13 +138,7 @@ def main(argv=None) -> int:
     p.add_argument("--data", type=Path, required=True, help="folder with pairs.json, images/")
     p.add_argument("--output_dir", type=Path, required=True)
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument(
-        "--variant",
-        action="append",
-        default=[],
-        metavar="NAME=JSON",
-        help="an extra rectsift method with these conf overrides; repeatable",
-    )
+    add_variant_argument(p, "--rect_conf")
     p.add_argument(
         "--depth_model",
         default=None,

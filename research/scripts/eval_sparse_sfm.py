@@ -53,6 +53,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from rectified_colmap_research.evaluation.methods import add_variant_argument
 from rectified_colmap_research.evaluation.colmap_sfm import (
     best_model,
     conf_args,
@@ -542,13 +543,7 @@ def main(argv=None) -> int:
         help="sift (colmap feature_extractor), rectsift (the default configuration) or "
         "another named configuration of rectified-colmap",
     )
-    p.add_argument(
-        "--variant",
-        action="append",
-        default=[],
-        metavar="NAME=JSON|CONF",
-        help="an extra rectified method: conf overrides as JSON, or a named configuration",
-    )
+    add_variant_argument(p)
     p.add_argument(
         "--max_num_features", "--SiftExtraction.max_num_features", type=int, default=8192
     )

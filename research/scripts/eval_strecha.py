@@ -48,6 +48,7 @@ from rectified_colmap.eval.report import paired_markdown, write_outputs
 from rectified_colmap.eval.wide_pairs import read_viewpoints
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.methods import (
+    add_variant_argument,
     depth_model_of,
     is_plain,
     method_conf,
@@ -132,15 +133,7 @@ def main(argv=None) -> int:
         help="JSON overrides of the extraction conf for rectsift, e.g. "
         '\'{"rectify": {"keep_plain": false}}\'',
     )
-    p.add_argument(
-        "--variant",
-        action="append",
-        default=[],
-        metavar="NAME=JSON|CONF",
-        help="an extra rectsift method NAME with these conf overrides (on top of "
-        "--rect_conf) or a named conf, evaluated beside --methods, e.g. "
-        '\'nodedup={"dedup": {"enabled": false}}\'; repeatable',
-    )
+    add_variant_argument(p, "--rect_conf")
     p.add_argument(
         "--plain_budget",
         type=int,

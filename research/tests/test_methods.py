@@ -49,3 +49,16 @@ def test_depth_model_of():
     assert depth_model_of("sift") is None and depth_model_of("sift@5", "x.onnx") is None
     assert depth_model_of("rectsift") == DEFAULT_DEPTH_MODEL
     assert depth_model_of("v", "x.onnx") == "x.onnx"
+
+
+def test_variant_argument_repeats_and_parses():
+    import argparse
+
+    from rectified_colmap_research.evaluation.methods import add_variant_argument
+
+    p = argparse.ArgumentParser()
+    add_variant_argument(p, on_top_of="--rect_conf")
+    args = p.parse_args(["--variant", "a={}", "--variant", "fast=rectsift-fast"])
+    assert parse_variants(args.variant) == {"a": {}, "fast": confs["rectsift-fast"]}
+    assert p.parse_args([]).variant == []
+    assert "on top of --rect_conf" in p.format_help().replace("\n", " ").replace("  ", " ")

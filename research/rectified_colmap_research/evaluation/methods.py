@@ -18,6 +18,7 @@ overrides, e.g. ``--rect_conf``, under the method's own, the budget on top);
 
 from __future__ import annotations
 
+import argparse
 import copy
 import json
 
@@ -40,6 +41,21 @@ def plain_budget(method: str) -> int | None:
     if not n.isdigit() or int(n) < 1:
         raise ValueError(f"{method!r}: expected sift@N with N a positive feature count")
     return int(n)
+
+
+def add_variant_argument(parser: argparse.ArgumentParser, on_top_of: str = "") -> None:
+    """The scripts' repeatable ``--variant NAME=JSON|CONF`` (parse it with
+    :func:`parse_variants`); ``on_top_of``: the option whose overrides it goes on, if any."""
+    where = f" (on top of {on_top_of})" if on_top_of else ""
+    parser.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=JSON|CONF",
+        help=f"an extra rectified method NAME: conf overrides as JSON{where}, or a named "
+        "conf, e.g. 'nodedup={\"dedup\": {\"enabled\": false}}' or 'fast=rectsift-fast'; "
+        "repeatable",
+    )
 
 
 def parse_variants(specs: list[str], taken: tuple[str, ...] | list[str] = ()) -> dict[str, dict]:
