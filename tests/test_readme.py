@@ -94,22 +94,24 @@ REFERENCE_PAGES = [
 
 
 def paragraphs(text: str) -> list[str]:
-    """Runs of non-empty lines outside fenced code, tables and headings."""
+    """Runs of non-empty lines outside fenced code, tables and headings; each list item
+    ("- ", "* ", "1. ") starts a run of its own."""
     text = re.sub(r"```.*?```", "\n\n", text, flags=re.S)
     out, cur = [], []
     for line in text.splitlines() + [""]:
-        if not line.strip() or line.lstrip().startswith(("|", "#")):
+        item = re.match(r"\s*([-*]|\d+\.) ", line) is not None
+        if not line.strip() or line.lstrip().startswith(("|", "#")) or item:
             if cur:
                 out.append(" ".join(cur))
-            cur = []
+            cur = [line.strip()] if item else []
         else:
             cur.append(line.strip())
     return out
 
 
 def test_paragraph_splitter():
-    text = "a b\nc\n\n| t | t |\n|---|\nd e f\n```\ng h i j\n```\n# k l\nm"
-    assert [len(p.split()) for p in paragraphs(text)] == [3, 3, 1]
+    text = "a b\nc\n\n| t | t |\n|---|\nd e f\n```\ng h i j\n```\n# k l\nm\n- n o\n  p\n- q"
+    assert [len(p.split()) for p in paragraphs(text)] == [3, 3, 1, 4, 2]
 
 
 @pytest.mark.parametrize("page", REFERENCE_PAGES, ids=lambda p: p.name)
