@@ -24,6 +24,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import os
 import tempfile
 from pathlib import Path
 
@@ -122,7 +123,14 @@ def export_depth_onnx(
         store_weights_fp16(proto)
     attach_metadata(proto, spec)
     onnx.checker.check_model(proto)
-    onnx.save(proto, str(output))
+    # written beside and renamed: an interrupted export never leaves a partial file at
+    # ``output`` (nor destroys the one an --overwrite replaces)
+    partial = output.with_name(output.name + ".partial")
+    try:
+        onnx.save(proto, str(partial))
+        os.replace(partial, output)
+    finally:
+        partial.unlink(missing_ok=True)
     logger.info(
         "wrote %s (%.1f MB, opset %d, %s%s)",
         output,

@@ -333,3 +333,27 @@ def test_models_export_subcommand(tmp_path, monkeypatch, caplog):
     assert "--overwrite" in caplog.text and out.read_bytes() == before
     assert main(args[:3] + ["no_colon"] + args[4:] + ["--overwrite"]) == 1
     assert "package.module:callable" in caplog.text and out.read_bytes() == before
+
+
+def test_an_interrupted_export_leaves_the_existing_file(tmp_path, monkeypatch):
+    """The file is written beside the output and renamed: a failure while saving leaves the
+    earlier file (the one --overwrite would replace) as it was, and no partial file."""
+    torch = pytest.importorskip("torch")
+    onnx_mod = pytest.importorskip("onnx")
+    from rectified_colmap.depth import export as exporter
+
+    out = tmp_path / "m.onnx"
+    out.write_bytes(b"the earlier model")
+
+    def failing_save(proto, path):
+        with open(path, "wb") as f:
+            f.write(b"half a model")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(onnx_mod, "save", failing_save)
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 1, 1), torch.nn.Softplus())
+    spec = ModelSpec(resize={"mode": "keep_aspect", "max_side": 64}, output="depth")
+    with pytest.raises(OSError, match="disk full"):
+        exporter.export_depth_onnx(net, out, spec, height=32, width=32, verify=False)
+    assert out.read_bytes() == b"the earlier model"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx"]
