@@ -264,9 +264,9 @@ def _import_ray():
 
 
 class RayRunner:
-    """Runs extraction jobs on Ray actors; a callable like the local runners of
-    this module: ``runner(jobs, conf, keep)`` yields the per-image
-    outcomes in job order. ``address``: a Ray cluster address, or "local" / "" for a local
+    """Runs extraction jobs on Ray actors; a callable like :class:`HereRunner` and
+    :class:`PoolRunner`: ``runner(jobs, conf, keep)`` yields the per-image outcomes in job
+    order. ``address``: a Ray cluster address, or "local" / "" for a local
     instance (started here, stopped by :meth:`close`). ``num_workers`` actors (1 CPU each);
     1 or less means one per CPU of the cluster. ``init``: what each actor builds its
     Worker from."""
