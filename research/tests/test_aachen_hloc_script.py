@@ -1,13 +1,11 @@
 """research/scripts/aachen_hloc.py: its checks of the hloc installation."""
 
 import sys
+
 import pytest
 from scripts_util import load_script
-from rectified_colmap.eval.aachen import (
-    HlocError,
-    call_with,
-    import_hloc,
-)
+
+from rectified_colmap.eval.aachen import HlocError, call_with, import_hloc
 
 
 def test_script_hloc_checks(monkeypatch):
