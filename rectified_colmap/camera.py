@@ -8,6 +8,8 @@ supported consistently for depth back-projection, warps and keypoints.
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -65,11 +67,33 @@ def rays_to_image(camera: pycolmap.Camera, rays: np.ndarray) -> np.ndarray:
     return out
 
 
+_GRID_RAYS_CACHE_SIZE = 4
+_grid_rays_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_grid_rays_lock = threading.Lock()
+
+
 def grid_rays(camera: pycolmap.Camera, width: int, height: int) -> np.ndarray:
     """Rays (height, width, 3) float64 through the centres of a width x height grid that
-    covers the whole image (the grid may be a downsampling of the image)."""
-    xy = pixel_centers(width, height, camera.width, camera.height)
-    return image_to_rays(camera, xy.reshape(-1, 2)).reshape(height, width, 3)
+    covers the whole image (the grid may be a downsampling of the image). Read-only: the
+    last few grids are kept (one image's stages ask for its work grid a dozen times; through
+    a distorted camera each costs a pycolmap call per cell)."""
+    key = (model_name(camera), camera.width, camera.height, tuple(camera.params), width, height)
+    with _grid_rays_lock:
+        rays = _grid_rays_cache.pop(key, None)
+        if rays is None:
+            xy = pixel_centers(width, height, camera.width, camera.height)
+            rays = image_to_rays(camera, xy.reshape(-1, 2)).reshape(height, width, 3)
+            rays.setflags(write=False)
+            while len(_grid_rays_cache) >= _GRID_RAYS_CACHE_SIZE:
+                _grid_rays_cache.popitem(last=False)
+        _grid_rays_cache[key] = rays  # most recently used last
+    return rays
+
+
+def unit_grid_rays(camera: pycolmap.Camera, width: int, height: int) -> np.ndarray:
+    """``grid_rays`` scaled to unit length (a new array)."""
+    rays = grid_rays(camera, width, height)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
 def num_params(model: str) -> int:

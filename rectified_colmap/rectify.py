@@ -233,8 +233,7 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     if len(rows) == 0:
         return None
     sx, sy = camera.width / gw, camera.height / gh
-    xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # = pixel_centers
-    rays = cam_utils.image_to_rays(camera, xy)
+    rays = cam_utils.grid_rays(camera, gw, gh)[rows, cols]
     cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
     cos_view = -(rays[:, 0] * n[0] + rays[:, 1] * n[1] + rays[:, 2] * n[2]) / np.sqrt(
         rays[:, 0] ** 2 + rays[:, 1] ** 2 + rays[:, 2] ** 2
@@ -242,15 +241,16 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     keep = np.isfinite(cos_view) & (cos_view >= cos_max) & (cos_view > 0) & (rays[:, 2] > 0)
     if not keep.any():
         return None
-    xy, rays = xy[keep], rays[keep]
+    rows, cols, rays = rows[keep], cols[keep], rays[keep]
     R = rectifying_rotation(n)
     # Virtual normalised coordinates of every kept cell (component-wise: fast).
     Xv = [R[i, 0] * rays[:, 0] + R[i, 1] * rays[:, 1] + R[i, 2] for i in range(3)]
     u = np.stack([Xv[0] / Xv[2], Xv[1] / Xv[2]], 1)
     # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
-    sel = np.linspace(0, len(xy) - 1, min(len(xy), _MAX_FOCAL_SAMPLES)).astype(np.int64)
+    sel = np.linspace(0, len(rays) - 1, min(len(rays), _MAX_FOCAL_SAMPLES)).astype(np.int64)
+    xy = np.stack([(cols[sel] + OFFSET) * sx, (rows[sel] + OFFSET) * sy], 1)  # pixel_centers
     _, Ju = _rays_to_rectified_jacobian(R, rays[sel])
-    J = Ju @ _image_to_ray_jacobian(camera, xy[sel])  # d(u)/d(image xy), f = 1
+    J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
     smin = _min_singular_values(J)
     if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:
         return None
@@ -265,8 +265,8 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
         f=1.0 / np.nanmedian(smin),
         lo=u.min(0) - half,
         hi=u.max(0) + half,
-        content=np.nanmean(det) * len(xy) * sx * sy,
-        orig_area=len(xy) * sx * sy,
+        content=np.nanmean(det) * len(rays) * sx * sy,
+        orig_area=len(rays) * sx * sy,
     )
 
 
@@ -389,8 +389,7 @@ def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
     if not patches:
         return np.zeros(0)
     h, w = patches[0].mask.shape
-    rays = cam_utils.grid_rays(camera, w, h)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays = cam_utils.unit_grid_rays(camera, w, h)
     angle = np.zeros(len(patches))
     for i, p in enumerate(patches):
         cos = np.clip(-(rays[p.mask] @ p.normal), -1.0, 1.0)
@@ -531,8 +530,7 @@ def viewing_masks(
     whose viewing angle is within the limit (cells beyond it are left to plain SIFT).
     Patches may overlap (depth-free whole-image warps): a cell can be in several masks."""
     h, w = shape
-    rays = cam_utils.grid_rays(camera, w, h)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays = cam_utils.unit_grid_rays(camera, w, h)
     cos_max = np.cos(np.deg2rad(max_viewing_angle_deg))
     out = np.zeros((len(rects), h, w), bool)
     for i, rect in enumerate(rects):

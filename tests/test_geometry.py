@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
+from rectified_colmap.conventions import pixel_centers
 from rectified_colmap.geometry import (
     angle_between_deg,
     angle_deg,
@@ -240,3 +241,25 @@ def test_axis_angle_rotation_exact():
         np.testing.assert_allclose(R @ axis, axis, atol=1e-12)
         assert np.linalg.det(R) == pytest.approx(1.0)
         assert rotation_angle_deg(R) == pytest.approx(np.degrees(abs(angle)))
+
+
+def test_grid_rays_cached_per_camera_and_grid():
+    """grid_rays keeps recent grids: the same camera and grid give the same read-only
+    array; any other parameter, size or grid gives that camera's own rays."""
+    cam = cam_utils.make_camera("SIMPLE_RADIAL", [200.0, 120.0, 80.0, 0.05], 240, 160)
+    rays = cam_utils.grid_rays(cam, 60, 40)
+    assert cam_utils.grid_rays(cam, 60, 40) is rays
+    assert not rays.flags.writeable
+    with pytest.raises(ValueError):
+        rays[0, 0, 0] = 1.0
+    xy = pixel_centers(60, 40, 240, 160).reshape(-1, 2)
+    assert np.array_equal(rays.reshape(-1, 3), cam_utils.image_to_rays(cam, xy))
+    other = cam_utils.make_camera("SIMPLE_RADIAL", [200.0, 120.0, 80.0, -0.05], 240, 160)
+    for c, (w, h) in [(other, (60, 40)), (cam, (30, 20))]:
+        xy = pixel_centers(w, h, 240, 160).reshape(-1, 2)
+        expected = cam_utils.image_to_rays(c, xy).reshape(h, w, 3)
+        assert np.array_equal(cam_utils.grid_rays(c, w, h), expected)
+    unit = cam_utils.unit_grid_rays(cam, 60, 40)
+    np.testing.assert_allclose(np.linalg.norm(unit, axis=-1), 1.0, atol=1e-12)
+    length = np.linalg.norm(rays, axis=-1, keepdims=True)
+    np.testing.assert_allclose(unit * length, rays, atol=1e-12)

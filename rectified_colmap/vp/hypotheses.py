@@ -148,8 +148,7 @@ def hypothesis_patches(
         (ray . n < 0); they overlap each other and the existing patches.
     """
     h, w = work_shape
-    rays = cam_utils.grid_rays(camera, w, h)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays = cam_utils.unit_grid_rays(camera, w, h)
     have = [np.asarray(m, float) for m in existing]
     out = []
     for n in normals:

@@ -116,8 +116,7 @@ def whole_image_patches(
     F = result.directions
     if F is None:
         return [], labels
-    rays = cam_utils.grid_rays(camera, w, h)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays = cam_utils.unit_grid_rays(camera, w, h)
     cos = rays @ F.T  # (h, w, 3): r . F[k]; side s = 1 (normal -F[k]) where > 0
     patches, best = [], np.zeros((h, w))
     for k in np.flatnonzero(result.snapped):
