@@ -272,10 +272,11 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     )
 
 
-def _finish_rectification(
-    camera: pycolmap.Camera, view: _PatchView, patch_index: int, conf: RectifyConf, scale: float
-) -> Rectification | None:
-    """plan_rectification from a patch's view: caps, ``scale``, size, K and mask."""
+def _view_camera(
+    view: _PatchView, conf: RectifyConf, scale: float
+) -> tuple[np.ndarray, tuple[int, int]]:
+    """The virtual intrinsics K (3, 3) and size (width, height) of a patch's view: the
+    caps of plan_rectification, then ``scale``."""
     f, lo, hi = view.f, view.lo, view.hi
 
     def size_for(f):
@@ -295,11 +296,20 @@ def _finish_rectification(
     size = np.maximum(size, 1)
     cx, cy = conf.border - lo * f
     K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    return K, (int(size[0]), int(size[1]))
+
+
+def _finish_rectification(
+    camera: pycolmap.Camera, view: _PatchView, patch_index: int, conf: RectifyConf, scale: float
+) -> Rectification | None:
+    """plan_rectification from a patch's view: ``_view_camera``, then the valid mask; None
+    when the mask is empty."""
+    K, (w, h) = _view_camera(view, conf, scale)
     rect = Rectification(
         R=view.R,
         K=K,
-        size=(int(size[0]), int(size[1])),
-        mask=np.zeros((int(size[1]), int(size[0])), bool),
+        size=(w, h),
+        mask=np.zeros((h, w), bool),
         normal=view.normal,
         patch_index=patch_index,
     )
@@ -500,25 +510,20 @@ def rectifications_within_area(
     patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
     to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
     patches of their size would get), or ``conf.max_total_pixels``. Each patch's view is
-    computed once."""
+    computed once, and its mask only at the final scale."""
     views = [(i, _patch_view(camera, patches[i], conf)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
-
-    def plan(scale):
-        rects = (_finish_rectification(camera, v, i, conf, scale) for i, v in views)
-        return [r for r in rects if r is not None]
-
-    rects = plan(1.0)
-    total = sum(r.size[0] * r.size[1] for r in rects)
+    sizes = [_view_camera(v, conf, 1.0)[1] for _, v in views]
+    total = sum(w * h for w, h in sizes)
     masks = [patches[i].mask for i in indices]
     overlap = 1.0
     if masks:
         overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
     budget = conf.max_total_area_factor * camera.width * camera.height * overlap
     budget = min(budget, conf.max_total_pixels)
-    if total > budget:
-        rects = plan(float(np.sqrt(budget / total)))
-    return rects
+    scale = float(np.sqrt(budget / total)) if total > budget else 1.0
+    rects = (_finish_rectification(camera, v, i, conf, scale) for i, v in views)
+    return [r for r in rects if r is not None]
 
 
 def viewing_masks(
