@@ -402,10 +402,12 @@ def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
         return np.zeros(0)
     h, w = patches[0].mask.shape
     rays = cam_utils.unit_grid_rays(camera, w, h)
+    # every patch's cosines on the whole grid in one product, (h, w, n)
+    cos = np.clip(-(rays @ np.stack([p.normal for p in patches], 1)), -1.0, 1.0)
     angle = np.zeros(len(patches))
     for i, p in enumerate(patches):
-        cos = np.clip(-(rays[p.mask] @ p.normal), -1.0, 1.0)
-        angle[i] = np.degrees(np.arccos(np.median(cos))) if cos.size else 0.0
+        c = cos[..., i][p.mask]
+        angle[i] = np.degrees(np.arccos(np.median(c))) if c.size else 0.0
     return angle
 
 
