@@ -29,6 +29,7 @@ hundreds of photos). ``--num_workers 1 2`` runs ``rectified`` once per worker co
         --max_images 6 --camera_params 1379.74,1382.08,760.095,503.155
     python scripts/bench_cli.py ... --resize 3072x2048      # upscaled copies
     python scripts/bench_cli.py --synthetic 6               # rendered streets (PNG)
+    python scripts/bench_cli.py --synthetic 6 --depth_files # ... with their exact depth
     python scripts/bench_cli.py ... --methods pycolmap rectified --num_workers 1 2
 """
 
@@ -134,6 +135,10 @@ def prepare_images(args, folder: Path) -> list[str]:
             r = synth.render(scene, camera, synth.random_view(scene, rng, camera))
             names.append(f"street_{i:03d}.png")
             cv2.imwrite(str(folder / names[-1]), r.image[:, :, ::-1])
+            if args.depth_files:  # beside the images: <name>.npy, metric depth
+                depth = folder.parent / "depth"
+                depth.mkdir(exist_ok=True)
+                np.save(depth / f"{names[-1]}.npy", r.depth.astype(np.float32))
         return names
     names = list_images(Path(args.image_path))[: args.max_images]
     for name in names:
@@ -158,6 +163,12 @@ def main(argv=None):
     p.add_argument("--resize", help="resize copies of the photos to WxH first (JPEG q95)")
     p.add_argument("--synthetic", type=int, default=0, help="render N street views instead")
     p.add_argument("--size", default="1536x1024", help="rendered image size WxH")
+    p.add_argument(
+        "--depth_files",
+        action="store_true",
+        help="with --synthetic: write each render's exact depth (.npy) and run "
+        "rectified-colmap with --depth_path (no network)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--camera_params",
@@ -182,6 +193,8 @@ def main(argv=None):
     args = p.parse_args(argv)
     if not args.synthetic and args.image_path is None:
         p.error("--image_path or --synthetic")
+    if args.depth_files and not args.synthetic:
+        p.error("--depth_files needs --synthetic")
 
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     tmp = Path(tempfile.mkdtemp(prefix="bench_cli_"))
@@ -230,6 +243,8 @@ def main(argv=None):
                 "--camera_params",
                 ",".join(f"{v:.6g}" for v in params),
             ]
+        if args.depth_files:
+            cmds["rectified"] += ["--depth_path", str(tmp / "depth")]
         for flag in ("conf", "orientation"):
             if getattr(args, flag):
                 cmds["rectified"] += [f"--{flag}", getattr(args, flag)]
@@ -267,6 +282,8 @@ def main(argv=None):
         shutil.rmtree(tmp, ignore_errors=True)
 
     what = f"{args.synthetic} rendered streets" if args.synthetic else f"{len(names)} images"
+    if args.depth_files:
+        what += " with depth files"
     with open("/proc/loadavg") as f:
         load = f.read().split()[0]
     print(f"\n{what}, {size[0]}x{size[1]}, budget {n}; load average at end {load}\n")
