@@ -54,7 +54,6 @@ class RectifyConf:
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
-    tilt_resolution: float = 1.0  # linear scale of a tilt neighbour's view (1: full size)
 
 
 @dataclass

@@ -36,9 +36,6 @@ class Patch:
     """(3,) unit normal of the patch: +-d_k, the sign of its label, facing the camera."""
     area_frac: float
     """Fraction of the image the patch covers."""
-    resolution: float = 1.0
-    """Linear scale of the patch's rectified view after its own size caps (rectify;
-    tilt neighbours: conf.rectify.tilt_resolution)."""
 
 
 @dataclass

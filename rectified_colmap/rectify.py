@@ -198,8 +198,6 @@ class _PatchView:
     """Rectified area of the patch at f = 1."""
     orig_area: float
     """Area of the patch's cells in original pixels."""
-    resolution: float = 1.0
-    """The patch's ``resolution``: a scale of the view after its own caps."""
 
 
 def plan_rectification(
@@ -271,7 +269,6 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
         hi=np.array([u[0].max(), u[1].max()]) + half,
         content=np.nanmean(det) * len(kept) * sx * sy,
         orig_area=len(kept) * sx * sy,
-        resolution=float(patch.resolution),
     )
 
 
@@ -279,14 +276,14 @@ def _view_camera(
     view: _PatchView, conf: RectifyConf, scale: float
 ) -> tuple[np.ndarray, tuple[int, int]]:
     """The virtual intrinsics K (3, 3) and size (width, height) of a patch's view: the
-    caps of plan_rectification, then the view's ``resolution`` and ``scale``."""
+    caps of plan_rectification, then ``scale``."""
     f, lo, hi = view.f, view.lo, view.hi
 
     def size_for(f):
         return np.ceil((hi - lo) * f + 2 * conf.border).astype(np.int64)
 
     size = size_for(f)
-    extra_scale, scale = min(float(scale), 1.0) * view.resolution, 1.0
+    extra_scale, scale = min(float(scale), 1.0), 1.0
     if size.max() > conf.max_patch_side:
         scale = min(scale, (conf.max_patch_side - 2 * conf.border) / ((hi - lo).max() * f))
     area_cap = conf.max_patch_area_factor * view.orig_area
@@ -433,12 +430,11 @@ def patch_evidence(
 
 
 def tilt_neighbours(
-    camera: pycolmap.Camera, patch: Patch, factor: float, steps: int, resolution: float = 1.0
+    camera: pycolmap.Camera, patch: Patch, factor: float, steps: int
 ) -> list[Patch]:
     """Patches with ``patch``'s mask whose normals are tilted so that the patch's tilt
     t = 1 / cos(viewing angle) becomes t * factor**k, k = +-1..+-steps (rotations about
-    n x v, v the patch's mean viewing ray; tilts under 1 or beyond 89 degrees are skipped),
-    with ``resolution`` x the patch's.
+    n x v, v the patch's mean viewing ray; tilts under 1 or beyond 89 degrees are skipped).
 
     At strong obliquity the rectification is steep in the orientation: at 70 degrees a
     5-degree error leaves a residual tilt of 1.3, at 80 degrees one of 1.7, beyond what
@@ -466,8 +462,7 @@ def tilt_neighbours(
         delta = np.arccos(cos_k) - np.arccos(cos0)  # > 0: more tilt
         # rotating n about n x v by +delta moves it away from -v (more tilt)
         normal = axis_angle_rotation(axis, delta) @ n
-        res = patch.resolution * resolution
-        out.append(Patch(patch.mask, patch.axis, normal, patch.area_frac, res))
+        out.append(Patch(patch.mask, patch.axis, normal, patch.area_frac))
     return out
 
 
@@ -484,10 +479,7 @@ def with_tilt_neighbours(
     for i, a in zip(list(todo), angle):
         if a < conf.tilt_bank_min_angle_deg:
             continue
-        neighbours = tilt_neighbours(
-            camera, patches[i], conf.tilt_factor, conf.tilt_steps, conf.tilt_resolution
-        )
-        for p in neighbours:
+        for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
             todo.append(len(patches))
             patches.append(p)
     return patches, todo

@@ -267,35 +267,6 @@ def test_tilt_neighbours_scale_the_tilt_exactly(name):
         assert abs(np.linalg.det(np.stack([p.normal, n, v]))) < 1e-12  # coplanar
 
 
-def test_tilt_neighbours_views_at_their_resolution():
-    """A neighbour made with ``resolution`` r carries it, and its rectified view is the one
-    it would have at full resolution scaled by r (focal, and size up to rounding), while
-    the global area cap still scales all views together."""
-    from rectified_colmap.rectify import rectifications_within_area, tilt_neighbours
-
-    cam = camera("PINHOLE")
-    mask = np.zeros((GH, GW), bool)
-    mask[10:50, 30:100] = True
-    patch = full_patch(unit([-0.8, 0.15, -0.55]), mask)
-    full = tilt_neighbours(cam, patch, 2**0.5, 1)
-    half = tilt_neighbours(cam, patch, 2**0.5, 1, resolution=0.5)
-    assert [p.resolution for p in full] == [1.0, 1.0] and [p.resolution for p in half] == [0.5] * 2
-    big = RectifyConf(max_total_pixels=1e9, max_total_area_factor=100.0)
-    for a, b in zip(full, half):
-        ra, rb = (plan_rectification(cam, p, 0, big) for p in (a, b))
-        assert rb.K[0, 0] == pytest.approx(0.5 * ra.K[0, 0], rel=1e-12)
-        assert all(
-            abs(sb - 0.5 * sa) <= 0.5 * 2 * big.border + 1 for sa, sb in zip(ra.size, rb.size)
-        )
-    # under a binding cap the full-resolution patch gets more of it than its neighbours
-    tight = RectifyConf(max_total_pixels=2e4)
-    rects = rectifications_within_area(cam, [patch] + half, [0, 1, 2], tight)
-    assert sum(r.size[0] * r.size[1] for r in rects) <= 2e4 * 1.15  # borders, rounding
-    f0 = rects[0].K[0, 0] / plan_rectification(cam, patch, 0, big).K[0, 0]
-    f1 = rects[1].K[0, 0] / plan_rectification(cam, full[0], 0, big).K[0, 0]
-    assert f1 == pytest.approx(0.5 * f0, rel=1e-9)
-
-
 def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
     """Two views of a textured plane 80 and 20 degrees from its normal; the oblique view is
     rectified with a normal 12 degrees too frontal (an error the network and vanishing
