@@ -36,7 +36,7 @@ from rectified_colmap_research.evaluation.methods import (
     parse_variants,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository
 SACRE_COEUR = ROOT.parent / "shared" / "vendor" / "hloc" / "datasets" / "sacre_coeur" / "mapping"
 logger = logging.getLogger("eval_hloc_sfm")
 

@@ -71,7 +71,7 @@ from rectified_colmap_research.evaluation.colmap_sfm import (
 
 from rectified_colmap.errors import run_script
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository
 DATA = ROOT.parent / "shared" / "data"
 
 
