@@ -48,7 +48,7 @@ class RectifyConf:
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
     max_patch_area_factor: float = 1.0  # cap on a view's area / its patch's area in the image
     max_total_area_factor: float = 0.8  # cap on all views' area / the image's area
-    max_total_pixels: float = 0.8e6  # cap on all views' pixels, whatever the image size
+    max_total_pixels: float = 2e6  # cap on all views' pixels, whatever the image size
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     keep_plain: bool = True  # replacing mode: plain SIFT also on rectified pixels
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
