@@ -249,9 +249,10 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     u = (Xv[0] / Xv[2], Xv[1] / Xv[2])
     # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
     sel = np.linspace(0, len(kept) - 1, min(len(kept), _MAX_FOCAL_SAMPLES)).astype(np.int64)
-    rows, cols = np.divmod(cells[kept[sel]], gw)
+    sample = cells[kept[sel]]
+    rows, cols = np.divmod(sample, gw)
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
-    _, Ju = _rays_to_rectified_jacobian(R, grid[cells[kept[sel]]])
+    _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
     J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
     smin = _min_singular_values(J)
     if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:

@@ -159,20 +159,24 @@ def direction_errors(directions: np.ndarray | None, gt_axes: np.ndarray) -> np.n
     return np.degrees(np.arccos(np.clip(c, -1, 1)))
 
 
+def normals_on_grid(
+    gt_normals: np.ndarray, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """GT normals (H, W, 3), NaN where unknown, resampled (nearest) to a (h, w) grid: the
+    normals (h, w, 3) with 0 where unknown, and (h, w) bool where known."""
+    h, w = shape
+    N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
+    known = np.isfinite(gt_normals).all(-1).astype(np.uint8)
+    valid = cv2.resize(known, (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    return N, valid
+
+
 def patch_errors(planes, gt_normals: np.ndarray) -> list[tuple[float, int]]:
     """(median angle to the GT normals of its pixels, pixels) per patch (work grid)."""
     if planes is None:
         return []
     h, w = planes.labels.shape
-    N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
-    valid = (
-        cv2.resize(
-            np.isfinite(gt_normals).all(-1).astype(np.uint8),
-            (w, h),
-            interpolation=cv2.INTER_NEAREST,
-        )
-        > 0
-    )
+    N, valid = normals_on_grid(gt_normals, (h, w))
     out = []
     for p in planes.patches:
         m = p.mask & valid
@@ -191,15 +195,7 @@ def patch_precision_recall(planes, gt_normals: np.ndarray, tol_deg: float = 10.0
     if planes is None or planes.labels is None:
         return np.zeros(4)
     h, w = planes.labels.shape
-    N = cv2.resize(np.nan_to_num(gt_normals), (w, h), interpolation=cv2.INTER_NEAREST)
-    valid = (
-        cv2.resize(
-            np.isfinite(gt_normals).all(-1).astype(np.uint8),
-            (w, h),
-            interpolation=cv2.INTER_NEAREST,
-        )
-        > 0
-    )
+    N, valid = normals_on_grid(gt_normals, (h, w))
     cos_t = np.cos(np.deg2rad(tol_deg))
     good, cells, hit = 0, 0, np.zeros((h, w), bool)
     for p in planes.patches:
