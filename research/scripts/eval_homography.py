@@ -12,6 +12,8 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
    - ``oracle``: the pipeline with the plane orientation taken from the ground-truth
      homography, decomposed with the guessed intrinsics (one plane over the whole image,
      normal n0 in image 0 and R n0 in image 1): the upper bound of rectification itself;
+   - ``asift``: OpenCV's ASIFT (``cv2.AffineFeature`` over SIFT, the budget per synthesised
+     view; rectified_colmap_research.evaluation.asift), the view-synthesis anchor;
    - extra variants with ``--variant NAME=JSON`` or ``NAME=CONF`` (conf overrides or a named
      configuration such as ``rectsift-fast``; ``"_base": "oracle"``
      in the JSON makes it a variant of ``oracle``, else of ``rectsift``);
@@ -53,6 +55,7 @@ from rectified_colmap.eval.homography import (
 from rectified_colmap.geometry import scaled_size
 from rectified_colmap.pipeline import extract_image
 from rectified_colmap.errors import run_script
+from rectified_colmap_research.evaluation.asift import asift_features
 from rectified_colmap_research.evaluation.methods import (
     add_variant_argument,
     method_conf,
@@ -60,7 +63,7 @@ from rectified_colmap_research.evaluation.methods import (
 )
 
 logger = logging.getLogger("eval_homography")
-METHODS = ("sift", "rectsift", "oracle")
+METHODS = ("sift", "rectsift", "oracle", "asift")
 
 
 def guessed_camera(width: int, height: int, focal_factor: float):
@@ -94,13 +97,16 @@ def extract_method(
     base = variant.pop("_base", "rectsift")  # a variant of rectsift (network) or of oracle
     # sift: exactly plain COLMAP SIFT; rectsift, oracle and the variants: --rect_conf, then
     # the variant's own overrides (methods.method_conf)
-    own = None if method == "sift" else {"rectsift": variant}
-    name = "sift" if method == "sift" else "rectsift"
+    # asift: plain SIFT's budget, per synthesised view
+    own = None if method in ("sift", "asift") else {"rectsift": variant}
+    name = "sift" if method in ("sift", "asift") else "rectsift"
     conf = ExtractConf.from_dict(
         method_conf(name, own, base=overrides, max_num_features=args.max_num_features)
     )
     source = None
-    if args.depth_model == "none":
+    if method == "asift":
+        pass
+    elif args.depth_model == "none":
         pass  # no depth: plain SIFT, or lines only with vp.depth_free
     elif method == "rectsift" or (method in args.variants and base == "rectsift"):
         from rectified_colmap.depth.registry import load_depth_source
@@ -114,6 +120,12 @@ def extract_method(
             rgb = cv2.cvtColor(cv2.imread(str(root / name)), cv2.COLOR_BGR2RGB)
             cam = cameras[name]
             depth, nmap = None, None
+            if method == "asift":
+                gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+                feats = asift_features(gray, conf.sift.max_num_features)
+                writer.write(name, feats, (cam.width, cam.height))
+                logger.info("%s %s: %d keypoints", method, name, len(feats))
+                continue
             if source is not None:
                 depth = source(rgb, cam, name)
             elif method == "oracle" or base == "oracle":
