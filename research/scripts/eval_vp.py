@@ -27,11 +27,18 @@ pose success (rotation error < 5 deg), GT-correct matches (Sampson < 3 px).
 ``--depth_model NAME|PATH ...`` adds one row "rect network (NAME)" per ONNX depth network
 (registry name or .onnx path, resolved as `rectified-colmap extract --depth_model`; CPU,
 one thread): each rendered image's depth is predicted by the network (OnnxDepthSource ->
-DepthMap -> extract_image, as in extraction); ``--depth_model_vp`` adds the same with
-vp.enabled ("rect network (NAME) + VP"). Their s / image include the network. A paired
-line per network row compares it with plain SIFT (exact two-sided binomial p-values)::
+DepthMap -> extract_image, as in extraction) and the conf is the default (with
+``--rect_conf`` on top), vanishing points included: with the embedded network this row
+is what `rectified-colmap extract` does. ``--depth_model_no_vp`` adds the same without the
+vanishing points' orientation of the depth planes (vp.enabled off: "rect network (NAME),
+no VP"; plane hypotheses from pairs of vanishing points stay). Their s / image include the
+network. A paired line per network row compares it with plain SIFT (exact two-sided
+binomial p-values)::
 
-    python scripts/eval_vp.py --num_pairs 24 --depth_model rectsift-lite0 --depth_model_vp
+    python scripts/eval_vp.py --num_pairs 24 --depth_model rectsift-lite0 --methods plain
+
+(Until 2026-12-03 the "rect network" row ran without vp.enabled and ``--depth_model_vp``
+added the default as "+ VP"; the flag is still accepted and changes nothing.)
 
 ``--timing SCENE...`` times plain SIFT and the two depth-free modes per image instead
 (first ``--num_images`` images of each scene; ``--max_num_features`` budget)::
@@ -82,10 +89,12 @@ METHODS = ("plain", "rect GT depth", "rect corrupted", "rect corrupted + VP", "V
 CPU = ["CPUExecutionProvider"]
 
 
-def network_rows(specs: list[str], with_vp: bool) -> dict[str, tuple[str, bool]]:
-    """Row name -> (model name or path, vp.enabled) for --depth_model / --depth_model_vp.
-    Rows are named by the registry name or the file name (the path as given if two
-    models would share a name)."""
+def network_rows(specs: list[str], without_vp: bool) -> dict[str, tuple[str, bool]]:
+    """Row name -> (model name or path, VP as the conf has it) for --depth_model /
+    --depth_model_no_vp: "rect network (NAME)" runs the conf as given (the default:
+    vanishing points on), "rect network (NAME), no VP" with vp.enabled off. Rows are named
+    by the registry name or the file name (the path as given if two models would share a
+    name)."""
     from rectified_colmap.depth.registry import REGISTRY
 
     specs = list(dict.fromkeys(specs))
@@ -94,9 +103,9 @@ def network_rows(specs: list[str], with_vp: bool) -> dict[str, tuple[str, bool]]
         labels = specs
     rows = {}
     for spec, label in zip(specs, labels):
-        rows[f"rect network ({label})"] = (spec, False)
-        if with_vp:
-            rows[f"rect network ({label}) + VP"] = (spec, True)
+        rows[f"rect network ({label})"] = (spec, True)
+        if without_vp:
+            rows[f"rect network ({label}), no VP"] = (spec, False)
     return rows
 
 
@@ -231,9 +240,10 @@ def confs(
     rows: dict[str, tuple[str, bool]] | None = None,
     overrides: dict | None = None,
 ) -> dict[str, ExtractConf]:
-    base = ExtractConf.from_dict(overrides)
-    base.sift.max_num_features = max_num_features
-    base.vp.enabled = False  # rows without "+ VP" run without it (the default has it on)
+    shipped = ExtractConf.from_dict(overrides)  # the default (+ overrides), VP as it has it
+    shipped.sift.max_num_features = max_num_features
+    base = ExtractConf.from_dict(shipped.to_dict())
+    base.vp.enabled = False  # the depth rows without "+ VP" and ", no VP" run without it
     vp = ExtractConf.from_dict(base.to_dict())
     vp.vp.enabled = True
     free = ExtractConf.from_dict(base.to_dict())
@@ -247,7 +257,7 @@ def confs(
         "VP only": free,
         WHOLE: whole,
     }
-    out.update({row: vp if vp_on else base for row, (_, vp_on) in (rows or {}).items()})
+    out.update({row: shipped if vp_on else base for row, (_, vp_on) in (rows or {}).items()})
     return out
 
 
@@ -265,7 +275,7 @@ def depth_for(
 def run(args) -> str:
     t0 = time.perf_counter()
     pairs = make_pairs(args.num_pairs, args.min_deg, args.max_deg, args.width, args.height)
-    rows = network_rows(args.depth_model, args.depth_model_vp)
+    rows = network_rows(args.depth_model, args.depth_model_no_vp)
     networks = load_networks(rows)
     methods = tuple(m for m in METHODS if m in args.methods) + tuple(rows)
     cfs = confs(args.max_num_features, rows, json.loads(args.rect_conf) if args.rect_conf else None)
@@ -550,9 +560,15 @@ def main(argv=None) -> int:
         "name, e.g. rectsift-lite0, or .onnx path; CPU, one thread)",
     )
     p.add_argument(
+        "--depth_model_no_vp",
+        action="store_true",
+        help="with --depth_model: also each network without the vanishing points' "
+        "orientation (vp.enabled off: ', no VP')",
+    )
+    p.add_argument(
         "--depth_model_vp",
         action="store_true",
-        help="with --depth_model: also each network with vp.enabled (+ VP)",
+        help="accepted for old commands; changes nothing (the network rows have VP)",
     )
     p.add_argument(
         "--methods",

@@ -3,15 +3,26 @@
 from scripts_util import load_script
 
 
-def test_rows_without_vp_run_without_it_although_the_default_has_it():
+def test_network_row_is_the_default_and_rows_without_vp_run_without_it():
+    from rectified_colmap.config import ExtractConf
+
     ev = load_script("eval_vp")
-    rows = ev.network_rows(["rectsift-lite0"], with_vp=True)
+    assert list(ev.network_rows(["rectsift-lite0"], without_vp=False)) == [
+        "rect network (rectsift-lite0)"
+    ]
+    rows = ev.network_rows(["rectsift-lite0"], without_vp=True)
     cfs = ev.confs(1024, rows, {"rectify": {"max_viewing_angle_deg": 86.0}})
     assert not cfs["rect GT depth"].vp.enabled
     assert not cfs["rect corrupted"].vp.enabled
     assert cfs["rect corrupted + VP"].vp.enabled
-    assert not cfs["rect network (rectsift-lite0)"].vp.enabled
-    assert cfs["rect network (rectsift-lite0) + VP"].vp.enabled
+    # the network row is what `rectified-colmap extract` runs: the default conf, VP on
+    shipped = ExtractConf.from_dict({"rectify": {"max_viewing_angle_deg": 86.0}})
+    shipped.sift.max_num_features = 1024
+    assert cfs["rect network (rectsift-lite0)"] == shipped and shipped.vp.enabled
+    assert not cfs["rect network (rectsift-lite0), no VP"].vp.enabled
+    # a conf that turns VP off keeps it off in the network row
+    off = ev.confs(1024, rows, {"vp": {"enabled": False}})
+    assert not off["rect network (rectsift-lite0)"].vp.enabled
     for conf in cfs.values():  # the budget and the overrides reach every row
         assert conf.sift.max_num_features == 1024
         assert conf.rectify.max_viewing_angle_deg == 86.0
