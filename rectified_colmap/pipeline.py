@@ -49,7 +49,8 @@ from .vp import (
     free_vanishing_points,
     hypothesis_patches,
     image_segments,
-    plane_hypotheses,
+    metric_correction,
+    plane_hypothesis_pairs,
     refine_directions,
 )
 from .vp.segments import Segments
@@ -118,9 +119,12 @@ def add_plane_hypotheses(
     """The planes plus whole-image patches for the strongest plane hypotheses from pairs of
     vanishing points (vp.hypotheses; conf.vp.line_hypotheses of them, none within
     conf.vp.hypothesis_merge_angle_deg of a patch the planes already have)."""
-    normals, _ = plane_hypotheses(free_vanishing_points(segments, conf.vp), conf.vp)
+    normals, _, pairs = plane_hypothesis_pairs(free_vanishing_points(segments, conf.vp), conf.vp)
+    affines = None
+    if conf.vp.hypothesis_self_calibrate and not camera.has_prior_focal_length:
+        affines = [metric_correction(di, dj, n) for (di, dj), n in zip(pairs, normals)]
     existing = [p.normal for p in planes.patches]
-    extra = hypothesis_patches(normals, camera, planes.labels.shape, existing, conf.vp)
+    extra = hypothesis_patches(normals, camera, planes.labels.shape, existing, conf.vp, affines)
     return replace(planes, patches=list(planes.patches) + extra) if extra else planes
 
 
