@@ -146,9 +146,6 @@ class VpConf:
     hypothesis_min_vp_angle_deg: float = 20.0  # closer VPs are one family: no plane
     hypothesis_merge_angle_deg: float = 10.0  # hypotheses this close to a better one: skipped
     hypothesis_min_tilt_deg: float = 50.0  # only planes tilted this much from the image
-    # hypotheses' views metric with a guessed focal length: the two VPs taken orthogonal
-    # (vp.hypotheses.metric_correction); off, or the camera's focal length a prior: none
-    hypothesis_self_calibrate: bool = False
 
     def __post_init__(self):
         if self.depth_free_regions not in ("lines", "whole"):

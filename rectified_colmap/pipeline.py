@@ -49,8 +49,7 @@ from .vp import (
     free_vanishing_points,
     hypothesis_patches,
     image_segments,
-    metric_correction,
-    plane_hypothesis_pairs,
+    plane_hypotheses,
     refine_directions,
 )
 from .vp.segments import Segments
@@ -119,12 +118,9 @@ def add_plane_hypotheses(
     """The planes plus whole-image patches for the strongest plane hypotheses from pairs of
     vanishing points (vp.hypotheses; conf.vp.line_hypotheses of them, none within
     conf.vp.hypothesis_merge_angle_deg of a patch the planes already have)."""
-    normals, _, pairs = plane_hypothesis_pairs(free_vanishing_points(segments, conf.vp), conf.vp)
-    affines = None
-    if conf.vp.hypothesis_self_calibrate and not camera.has_prior_focal_length:
-        affines = [metric_correction(di, dj, n) for (di, dj), n in zip(pairs, normals)]
+    normals, _ = plane_hypotheses(free_vanishing_points(segments, conf.vp), conf.vp)
     existing = [p.normal for p in planes.patches]
-    extra = hypothesis_patches(normals, camera, planes.labels.shape, existing, conf.vp, affines)
+    extra = hypothesis_patches(normals, camera, planes.labels.shape, existing, conf.vp)
     return replace(planes, patches=list(planes.patches) + extra) if extra else planes
 
 

@@ -36,10 +36,6 @@ class Patch:
     """(3,) unit normal of the patch: +-d_k, the sign of its label, facing the camera."""
     area_frac: float
     """Fraction of the image the patch covers."""
-    view_affine: np.ndarray | None = None
-    """(3, 3) affine map of the virtual normalised coordinates of the patch's rectification
-    (rectify.rectifying_rotation of ``normal``) applied before the view is planned, or
-    None (identity): e.g. a plane hypothesis made metric (vp.hypotheses.metric_correction)."""
 
 
 @dataclass

@@ -39,9 +39,7 @@ class Rectification:
     R: np.ndarray
     """(3, 3) rotation original camera frame -> virtual camera frame."""
     K: np.ndarray
-    """(3, 3) intrinsics of the virtual pinhole camera (COLMAP convention): pixels from the
-    virtual normalised coordinates; [[f, 0, cx], [0, f, cy], [0, 0, 1]], times the patch's
-    ``view_affine`` where it has one."""
+    """(3, 3) intrinsics of the virtual pinhole camera (COLMAP convention)."""
     size: tuple[int, int]
     """(width, height) of the rectified patch image."""
     mask: np.ndarray
@@ -141,18 +139,10 @@ def _rectified_mask(
     """(height, width) bool: rectified pixels whose rays are in front of the camera, within
     the viewing angle, inside the image and in the patch (nearest cell of the work grid)."""
     w, h = rect.size
+    f, cx, cy = rect.K[0, 0], rect.K[0, 2], rect.K[1, 2]
     # Viewing angle: -ray . n = cos of the angle of the virtual ray (u, v, 1) to +z.
-    K = rect.K
-    if K[0, 1] == 0 and K[1, 0] == 0 and K[0, 0] == K[1, 1]:  # [[f, 0, cx], [0, f, cy]]
-        f, cx, cy = K[0, 0], K[0, 2], K[1, 2]
-        u2 = (((np.arange(w) + OFFSET - cx) / f) ** 2)[None, :]
-        v2 = (((np.arange(h) + OFFSET - cy) / f) ** 2)[:, None]
-    else:  # a view with Patch.view_affine: (u, v, 1) = K^-1 (x, y, 1)
-        Ki = np.linalg.inv(K)
-        x = (np.arange(w) + OFFSET)[None, :]
-        y = (np.arange(h) + OFFSET)[:, None]
-        u2 = (Ki[0, 0] * x + Ki[0, 1] * y + Ki[0, 2]) ** 2
-        v2 = (Ki[1, 0] * x + Ki[1, 1] * y + Ki[1, 2]) ** 2
+    u2 = (((np.arange(w) + OFFSET - cx) / f) ** 2)[None, :]
+    v2 = (((np.arange(h) + OFFSET - cy) / f) ** 2)[:, None]
     ok = 1.0 + u2 + v2 <= 1.0 / cos_max**2
     gh, gw = patch_mask.shape
     A = rect.R.T @ np.linalg.inv(rect.K)  # homogeneous rectified pixel -> original ray
@@ -208,8 +198,6 @@ class _PatchView:
     """Rectified area of the patch at f = 1."""
     orig_area: float
     """Area of the patch's cells in original pixels."""
-    affine: np.ndarray | None = None
-    """Patch.view_affine: lo, hi, f and content are in the coordinates it maps to."""
 
 
 def plan_rectification(
@@ -259,17 +247,12 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     # Virtual normalised coordinates of every kept cell.
     Xv = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
     u = (Xv[0] / Xv[2], Xv[1] / Xv[2])
-    A = patch.view_affine
-    if A is not None:
-        u = (A[0, 0] * u[0] + A[0, 1] * u[1] + A[0, 2], A[1, 0] * u[0] + A[1, 1] * u[1] + A[1, 2])
     # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
     sel = np.linspace(0, len(kept) - 1, min(len(kept), _MAX_FOCAL_SAMPLES)).astype(np.int64)
     sample = cells[kept[sel]]
     rows, cols = np.divmod(sample, gw)
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
     _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
-    if A is not None:
-        Ju = A[:2, :2] @ Ju
     J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
     smin = _min_singular_values(J)
     if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:
@@ -287,7 +270,6 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
         hi=np.array([u[0].max(), u[1].max()]) + half,
         content=np.nanmean(det) * len(kept) * sx * sy,
         orig_area=len(kept) * sx * sy,
-        affine=None if A is None else np.asarray(A, np.float64),
     )
 
 
@@ -315,8 +297,6 @@ def _view_camera(
     size = np.maximum(size, 1)
     cx, cy = conf.border - lo * f
     K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-    if view.affine is not None:
-        K = K @ view.affine
     return K, (int(size[0]), int(size[1]))
 
 

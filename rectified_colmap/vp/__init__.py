@@ -26,13 +26,7 @@ are re-exported for the pipeline and tools; new code may import from the modules
 """
 
 from .fusion import VpResult, manhattan_from_image, refine_directions
-from .hypotheses import (
-    free_vanishing_points,
-    hypothesis_patches,
-    metric_correction,
-    plane_hypotheses,
-    plane_hypothesis_pairs,
-)
+from .hypotheses import free_vanishing_points, hypothesis_patches, plane_hypotheses
 from .line_planes import depth_free_planes
 from .segments import image_segments
 
@@ -41,10 +35,8 @@ __all__ = [
     "depth_free_planes",
     "free_vanishing_points",
     "hypothesis_patches",
-    "metric_correction",
     "image_segments",
     "manhattan_from_image",
     "plane_hypotheses",
-    "plane_hypothesis_pairs",
     "refine_directions",
 ]

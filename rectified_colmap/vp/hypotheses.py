@@ -111,103 +111,21 @@ def plane_hypotheses(
     Returns:
         normals (P, 3) unit, facing the camera (n_z <= 0); scores (P,).
     """
-    normals, scores, _ = plane_hypothesis_pairs(vps, conf)
-    return normals, scores
-
-
-def plane_hypothesis_pairs(
-    vps: VanishingPoints, conf: VpConf = VpConf()
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``plane_hypotheses`` and, per normal, (P, 2, 3) the pair of VP directions it
-    comes from."""
     cands = []
     for i, j in combinations(range(len(vps.directions)), 2):
         vi, vj = vps.directions[i], vps.directions[j]
         if line_angle_deg(vi, vj) < conf.hypothesis_min_vp_angle_deg:
             continue
         n = _unit(np.cross(vi, vj))
-        cands.append((min(vps.support[i], vps.support[j]), -n if n[2] > 0 else n, (vi, vj)))
+        cands.append((min(vps.support[i], vps.support[j]), -n if n[2] > 0 else n))
     cands.sort(key=lambda c: -c[0])
-    normals, scores, pairs = [], [], []
-    for s, n, pair in cands:
+    normals, scores = [], []
+    for s, n in cands:
         if any(line_angle_deg(n, m) < conf.hypothesis_merge_angle_deg for m in normals):
             continue
         normals.append(n)
         scores.append(s)
-        pairs.append(pair)
-    return np.reshape(normals, (-1, 3)), np.array(scores, float), np.reshape(pairs, (-1, 2, 3))
-
-
-_SELF_CAL_SIGMA_DEG = 0.5
-"""Angular error of a vanishing point assumed by ``orthogonal_focal_scale``."""
-_SELF_CAL_MAX_REL = 0.1
-"""The focal scale is used only when that error moves it by less than this fraction."""
-_SELF_CAL_RANGE = (0.5, 2.0)
-"""...and when it is within this range of the guess."""
-
-
-def _focal_scale_sq(di: np.ndarray, dj: np.ndarray) -> float:
-    den = di[2] * dj[2]
-    if abs(den) < 1e-12:
-        return np.nan
-    return -(di[0] * dj[0] + di[1] * dj[1]) / den
-
-
-def orthogonal_focal_scale(di: np.ndarray, dj: np.ndarray) -> float | None:
-    """The factor s of the camera's focal length that makes the 3-D directions of two
-    vanishing points orthogonal (camera frame, z forward, principal point known): under
-    focal s f the direction (x, y, z) becomes (x, y, s z), so s^2 = -(x_i x_j + y_i y_j) /
-    (z_i z_j), the classic calibration from two orthogonal vanishing points.
-
-    None when the pair does not determine it: s^2 <= 0 (not orthogonal for any focal
-    length), a vanishing point at infinity (z = 0: every s fits), s outside
-    ``_SELF_CAL_RANGE``, or s moved by more than ``_SELF_CAL_MAX_REL`` when either
-    direction moves by ``_SELF_CAL_SIGMA_DEG`` (ill-conditioned)."""
-    di = _unit(np.asarray(di, float))
-    dj = _unit(np.asarray(dj, float))
-    s2 = _focal_scale_sq(di, dj)
-    if not np.isfinite(s2) or s2 <= 0:
-        return None
-    s = float(np.sqrt(s2))
-    if not _SELF_CAL_RANGE[0] <= s <= _SELF_CAL_RANGE[1]:
-        return None
-    eps = np.deg2rad(_SELF_CAL_SIGMA_DEG)
-    for k, d in enumerate((di, dj)):
-        a = np.cross(d, _OPTICAL_AXIS if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0]))
-        a = _unit(a)
-        b = np.cross(d, a)
-        for t in (a, -a, b, -b):
-            moved = _unit(d + eps * t)
-            q = _focal_scale_sq(moved, dj) if k == 0 else _focal_scale_sq(di, moved)
-            if not np.isfinite(q) or q <= 0 or abs(np.sqrt(q) / s - 1.0) > _SELF_CAL_MAX_REL:
-                return None
-    return s
-
-
-def metric_correction(di: np.ndarray, dj: np.ndarray, normal: np.ndarray) -> np.ndarray | None:
-    """(3, 3) affine map of the virtual normalised coordinates of the rectification of
-    ``normal`` (the plane of VP directions ``di``, ``dj`` under the guessed focal length
-    f; rectify.rectifying_rotation) onto those of the plane's metric rectification under
-    focal s f, s = ``orthogonal_focal_scale`` (the two directions orthogonal there), or
-    None where s is undetermined or within 1 % of 1.
-
-    Both rectifications send the plane's vanishing line to infinity, so the map between
-    them is affine: M = R' D R^T with D = diag(1/s, 1/s, 1) (normalised coordinates under
-    s f from those under f) and R, R' the rectifying rotations of ``normal`` and of the
-    plane's normal under s f, D^-1 n. In the plane's view this undoes the affine
-    distortion a wrong focal length leaves (a residual tilt of up to s at grazing angles)."""
-    from ..rectify import rectifying_rotation
-
-    s = orthogonal_focal_scale(di, dj)
-    if s is None or abs(s - 1.0) < 0.01:
-        return None
-    n = _unit(np.asarray(normal, float))
-    D = np.diag([1.0 / s, 1.0 / s, 1.0])
-    n_metric = _unit(np.linalg.solve(D, n))  # D^-1 n, facing the camera as n does
-    M = rectifying_rotation(n_metric) @ D @ rectifying_rotation(n).T
-    A = M / M[2, 2]
-    A[2] = (0.0, 0.0, 1.0)  # exactly affine (M[2, :2] is rounding)
-    return A
+    return np.reshape(normals, (-1, 3)), np.array(scores, float)
 
 
 def hypothesis_patches(
@@ -216,7 +134,6 @@ def hypothesis_patches(
     work_shape: tuple[int, int],
     existing: list[np.ndarray],
     conf: VpConf = VpConf(),
-    affines: list[np.ndarray | None] | None = None,
 ) -> list[Patch]:
     """Whole-image patches for the first conf.line_hypotheses normals not already present
     and tilted at least conf.hypothesis_min_tilt_deg from the image plane.
@@ -226,7 +143,6 @@ def hypothesis_patches(
         camera: the image's camera; work_shape: (h, w) of the work grid.
         existing: normals (3,) of the patches the image already has (depth or lines): a
             hypothesis within conf.hypothesis_merge_angle_deg of one of them is skipped.
-        affines: per normal, its Patch.view_affine (metric_correction) or None.
     Returns:
         Patches (axis -1) whose masks hold every work cell seeing the plane from the front
         (ray . n < 0); they overlap each other and the existing patches.
@@ -235,8 +151,7 @@ def hypothesis_patches(
     rays = cam_utils.unit_grid_rays(camera, w, h)
     have = [np.asarray(m, float) for m in existing]
     out = []
-    affines = affines if affines is not None else [None] * len(normals)
-    for n, affine in zip(normals, affines):
+    for n in normals:
         if len(out) >= conf.line_hypotheses:
             break
         if any(line_angle_deg(n, m) < conf.hypothesis_merge_angle_deg for m in have):
@@ -244,6 +159,6 @@ def hypothesis_patches(
         if line_angle_deg(n, _OPTICAL_AXIS) < conf.hypothesis_min_tilt_deg:
             continue
         mask = rays @ n < 0
-        out.append(Patch(mask, -1, n, float(mask.mean()), affine))
+        out.append(Patch(mask, -1, n, float(mask.mean())))
         have.append(n)
     return out

@@ -10,13 +10,10 @@ from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.geometry import line_angle_deg
 from rectified_colmap.pipeline import extract_image
 from rectified_colmap.synth.lines import project_segments
-from rectified_colmap.rectify import image_to_rectified_homography
 from rectified_colmap.vp.hypotheses import (
     VanishingPoints,
     free_vanishing_points,
     hypothesis_patches,
-    metric_correction,
-    orthogonal_focal_scale,
     plane_hypotheses,
 )
 from rectified_colmap.vp.segments import segments_on_sphere
@@ -161,87 +158,3 @@ def test_pipeline_adds_the_plane_the_depth_missed():
     # the texture's outer edge against the black background, as plain SIFT's do)
     x, y = np.floor(rect.keypoints).astype(int).T
     assert np.isfinite(depth[np.clip(y, 0, 479), np.clip(x, 0, 639)]).mean() > 0.95
-
-
-def similarity_residual(src: np.ndarray, dst: np.ndarray) -> float:
-    """Max residual of the best 2-D similarity src -> dst (either handedness), relative to
-    the extent of dst: 0 when dst is src rotated, scaled and shifted."""
-    best = np.inf
-    for flip in (1.0, -1.0):
-        p = src * [1.0, flip]
-        A = np.zeros((2 * len(p), 4))
-        A[0::2] = np.c_[p[:, 0], -p[:, 1], np.ones(len(p)), np.zeros(len(p))]
-        A[1::2] = np.c_[p[:, 1], p[:, 0], np.zeros(len(p)), np.ones(len(p))]
-        b = dst.reshape(-1)
-        r = A @ np.linalg.lstsq(A, b, rcond=None)[0] - b
-        best = min(best, np.abs(r).max() / np.ptp(dst, axis=0).max())
-    return best
-
-
-def test_orthogonal_focal_scale_is_the_classic_calibration():
-    """Two orthogonal directions seen with focal f, their VPs read with a guess g: the scale
-    is f / g exactly; undetermined for a VP at infinity, a non-positive s^2 or out of range."""
-    rng = np.random.default_rng(0)
-    for _ in range(5):
-        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-        e1, e2 = q[:, 0], q[:, 1]
-        if abs(e1[2]) < 0.3 or abs(e2[2]) < 0.3:
-            continue
-        f, g = 500.0, rng.uniform(300.0, 800.0)
-        d1, d2 = (np.array([*(f * e[:2] / e[2]) / g, 1.0]) for e in (e1, e2))
-        s = orthogonal_focal_scale(d1, d2)
-        assert s is None or s == pytest.approx(f / g, rel=1e-9)
-    a, b = np.array([0.3, 0.1, 1.0]), np.array([-1.2, 0.4, 1.0])  # s^2 = 0.32
-    assert orthogonal_focal_scale(a, b) == pytest.approx(np.sqrt(0.32))
-    assert orthogonal_focal_scale(a, np.array([1.0, 0.0, 0.0])) is None  # VP at infinity
-    assert orthogonal_focal_scale(a, np.array([1.0, 0.5, 1.0])) is None  # s^2 < 0
-    # s^2 = 1.2, but with one VP near the centre and the other 60 focal lengths out, half a
-    # degree moves s by more than 10 %: ill-conditioned
-    assert orthogonal_focal_scale(np.array([0.02, 0.01, 1.0]), np.array([-60.0, 0.0, 1.0])) is None
-    assert metric_correction(a, np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])) is None
-
-
-@pytest.mark.parametrize("guess", [350.0, 700.0])
-def test_self_calibrated_hypothesis_view_is_metric_under_a_wrong_focal_guess(guess):
-    """A facade of horizontal and vertical lines seen at ~65 degrees by a camera of focal
-    500, extracted with a guessed focal length: the hypothesis' view is an affine distortion
-    of the facade, unless vp.hypothesis_self_calibrate makes it metric (the facade's points
-    land on a similarity of their facade coordinates); a camera whose focal length is a
-    prior, or the true guess, gets no correction."""
-    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    R, t = look_at([4.0, -2.0, 2.5], [0.0, 0.0, 0.0])
-    img, _ = plane_view(facade_texture(), 8.0 / 512, K, R, t, (640, 480))
-    w, h = 320, 240
-    frontal = np.broadcast_to(np.array([0.0, 0.0, -1.0]), (h, w, 3)).copy()
-    ab = np.array([(a, b) for a in np.linspace(-3, 3, 7) for b in np.linspace(-3, 3, 7)])
-    X = np.c_[ab, np.zeros(len(ab))] @ R.T + t
-    xy = X[:, :2] / X[:, 2:] @ K[:2, :2].T + K[:2, 2]  # COLMAP pixels of the true camera
-
-    def views(camera, self_calibrate):
-        conf = ExtractConf.from_dict(
-            {
-                "vp": {"line_hypotheses": 1, "hypothesis_self_calibrate": self_calibrate},
-                "rectify": {"tilt_steps": 0},  # the hypothesis' own view only
-            }
-        )
-        res = extract_image(img, camera, None, conf, normals=frontal)
-        out = []
-        for r in res.rectifications:
-            if res.planes.patches[r.patch_index].axis != -1:
-                continue  # the hypothesis only
-            H = image_to_rectified_homography(camera, r)
-            p = np.c_[xy, np.ones(len(xy))] @ H.T
-            out.append((res.planes.patches[r.patch_index].view_affine, p[:, :2] / p[:, 2:]))
-        return out
-
-    camera = make_camera("PINHOLE", [guess, guess, 320.0, 240.0], 640, 480)
-    ((affine, uv),) = views(camera, False)
-    assert affine is None and similarity_residual(ab, uv) > 0.02  # affinely distorted
-    ((affine, uv),) = views(camera, True)
-    assert affine is not None and similarity_residual(ab, uv) < 0.01
-    camera.has_prior_focal_length = True  # a known focal length is not second-guessed
-    ((affine, _),) = views(camera, True)
-    assert affine is None
-    true = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
-    ((affine, uv),) = views(true, True)  # s within 1 % of 1: nothing to correct
-    assert affine is None and similarity_residual(ab, uv) < 0.01
