@@ -12,6 +12,7 @@ from rectified_colmap_research.evaluation.asift import (
 from rectified_colmap.conventions import to_opencv_points
 from rectified_colmap.eval.matching import match_ratio
 from rectified_colmap.io.hloc_h5 import rootsift_unit
+from rectified_colmap.synth.planar import textured_image
 
 
 def test_descriptors_become_colmap_rootsift_bytes():
@@ -38,17 +39,10 @@ def test_keypoints_take_colmap_convention_and_similarity_frames():
     assert len(features_from_opencv([], None)) == 0
 
 
-def _texture(size: int, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (size, size)).astype(np.float32), (0, 0), 2.0)
-    img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX)
-    return img.astype(np.uint8)
-
-
 def test_asift_matches_a_strong_tilt_where_its_keypoints_say():
     """A texture and the same texture compressed 4x along x (a tilt of 4: 76 degrees): ASIFT
     matches them, and its matches agree with the true map in COLMAP's convention."""
-    img0 = _texture(240, 0)
+    img0 = textured_image(240, 240, 0)
     A = np.array([[0.25, 0.0, 0.0], [0.0, 1.0, 0.0]])  # OpenCV pixel centres
     img1 = cv2.warpAffine(img0, A, (60, 240), flags=cv2.INTER_AREA)
     f0, f1 = asift_features(img0, 2000), asift_features(img1, 2000)
@@ -56,6 +50,6 @@ def test_asift_matches_a_strong_tilt_where_its_keypoints_say():
     x0 = to_opencv_points(f0.keypoints[m[:, 0]])
     x1 = to_opencv_points(f1.keypoints[m[:, 1]])
     err = np.linalg.norm(x0 @ A[:, :2].T + A[:, 2] - x1, axis=1)
-    assert (err < 2).sum() >= 100 and np.mean(err < 2) > 0.8  # plain SIFT: 0 matches
+    assert (err < 2).sum() >= 100 and np.mean(err < 2) > 0.8  # plain SIFT: 0 correct
     with pytest.raises(ValueError, match="uint8"):
         asift_features(img0.astype(np.float32))
