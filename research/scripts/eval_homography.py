@@ -104,10 +104,8 @@ def extract_method(
         method_conf(name, own, base=overrides, max_num_features=args.max_num_features)
     )
     source = None
-    if method == "asift":
-        pass
-    elif args.depth_model == "none":
-        pass  # no depth: plain SIFT, or lines only with vp.depth_free
+    if method == "asift" or args.depth_model == "none":
+        pass  # asift needs no depth; none: plain SIFT, or lines only with vp.depth_free
     elif method == "rectsift" or (method in args.variants and base == "rectsift"):
         from rectified_colmap.depth.registry import load_depth_source
         from rectified_colmap.config import DEFAULT_DEPTH_MODEL
