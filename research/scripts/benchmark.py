@@ -11,7 +11,9 @@ For each image, in this one process, single-threaded, one method after the other
   twice as well: ``rect_cold`` is the first call, the stages and ``rect_total`` come from
   the second (the whole image's extractor warm, as the CLI keeps it from one same-size
   photo to the next; patches get new extractors either way).
-- optionally OpenCV's ASIFT (``cv2.AffineFeature`` over SIFT, the view-synthesis anchor).
+- optionally OpenCV's ASIFT (``cv2.AffineFeature`` over SIFT, one ``detectAndCompute`` with
+  the budget per synthesised view: rectified_colmap_research.evaluation.asift, as
+  eval_homography.py runs it), the view-synthesis anchor.
 
 Before each method the SIFT extractors are released and the peak resident memory of the
 process (VmHWM) is reset, so ``plain_MB`` / ``rect_MB`` are the process's peak during that
@@ -59,6 +61,7 @@ from rectified_colmap.errors import run_script  # noqa: E402
 from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
 from rectified_colmap.io.images import list_images, read_image  # noqa: E402
 from rectified_colmap.pipeline import extract_image  # noqa: E402
+from rectified_colmap_research.evaluation.asift import asift_features  # noqa: E402
 
 STAGES = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches", "dedup"]
 COLUMNS = STAGES + [
@@ -276,10 +279,8 @@ def main(argv=None) -> int:
 
         t_asift = float("nan")
         if not args.no_asift:
-            asift = cv2.AffineFeature.create(cv2.SIFT.create(nfeatures=conf.sift.max_num_features))
             t0 = clock()
-            kp = asift.detect(gray, None)
-            asift.compute(gray, kp)
+            asift_features(gray, conf.sift.max_num_features)
             t_asift = clock() - t0
         tm = dict(res.timings, depth=t_depth)
         row = {s: tm.get(s, 0.0) for s in STAGES}
