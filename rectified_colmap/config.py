@@ -38,6 +38,10 @@ class PlaneConf:
     min_normals: int = 100  # fewer valid normals: no dominant directions (plain SIFT)
 
 
+TILT_BANK_OF = ("all", "hypotheses")
+"""Values of ``RectifyConf.tilt_bank_of`` (rectified_colmap.rectify.with_tilt_neighbours)."""
+
+
 @dataclass
 class RectifyConf:
     """Plane patches -> homographies and rectified views (rectified_colmap.rectify)."""
@@ -54,6 +58,13 @@ class RectifyConf:
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
+    tilt_bank_of: str = "all"  # "all" oblique views, or "hypotheses": plane hypotheses' only
+
+    def __post_init__(self):
+        if self.tilt_bank_of not in TILT_BANK_OF:
+            raise ValueError(
+                f"rectify.tilt_bank_of must be one of {TILT_BANK_OF}, got {self.tilt_bank_of!r}"
+            )
 
 
 @dataclass

@@ -472,13 +472,17 @@ def with_tilt_neighbours(
 ) -> tuple[list[Patch], list[int]]:
     """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
     of those in ``todo`` seen at conf.tilt_bank_min_angle_deg or more (appended after all
-    of ``patches``, each a patch of its own), and ``todo`` with their indices added."""
+    of ``patches``, each a patch of its own), and ``todo`` with their indices added. With
+    conf.tilt_bank_of "hypotheses" only plane hypotheses' patches (axis -1: planes from
+    pairs of vanishing points, rectified_colmap.vp.hypotheses) get neighbours."""
     if conf.tilt_steps <= 0 or not todo:
         return patches, todo
     angle = viewing_angles(camera, [patches[i] for i in todo])
     patches, todo = list(patches), list(todo)
     for i, a in zip(list(todo), angle):
         if a < conf.tilt_bank_min_angle_deg:
+            continue
+        if conf.tilt_bank_of == "hypotheses" and patches[i].axis != -1:
             continue
         for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
             todo.append(len(patches))

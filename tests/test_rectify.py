@@ -267,6 +267,30 @@ def test_tilt_neighbours_scale_the_tilt_exactly(name):
         assert abs(np.linalg.det(np.stack([p.normal, n, v]))) < 1e-12  # coplanar
 
 
+def test_tilt_bank_of_hypotheses_banks_only_plane_hypotheses():
+    """With rectify.tilt_bank_of "hypotheses" only patches of axis -1 (plane hypotheses
+    from pairs of vanishing points) get tilt neighbours; with "all" every oblique patch in
+    ``todo`` does, and a frontal one none. Neighbours are appended with their indices."""
+    from rectified_colmap.rectify import with_tilt_neighbours
+
+    cam = camera("PINHOLE")
+    oblique = unit([-0.8, 0.15, -0.55])  # about 57 degrees from the rays
+    depth_patch = full_patch(oblique)
+    hyp_patch = Patch(depth_patch.mask, -1, oblique, 1.0)
+    frontal = full_patch([0.0, 0.0, -1.0])
+    patches = [depth_patch, hyp_patch, frontal]
+    for bank_of, banked in (("all", [0, 1]), ("hypotheses", [1])):
+        conf = RectifyConf(tilt_steps=1, tilt_bank_of=bank_of)
+        out, todo = with_tilt_neighbours(cam, patches, [0, 1, 2], conf)
+        assert out[:3] == patches
+        assert todo == list(range(len(out)))
+        assert len(out) == 3 + 2 * len(banked)  # one step each way (57 deg: both valid)
+        axes = [p.axis for p in out[3:]]
+        assert axes == sum(([patches[i].axis] * 2 for i in banked), [])
+    with pytest.raises(ValueError, match="tilt_bank_of"):
+        RectifyConf(tilt_bank_of="depth")
+
+
 def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
     """Two views of a textured plane 80 and 20 degrees from its normal; the oblique view is
     rectified with a normal 12 degrees too frontal (an error the network and vanishing
