@@ -58,7 +58,7 @@ class RectifyConf:
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
-    tilt_bank_of: str = "all"  # "all" oblique views, or "hypotheses": plane hypotheses' only
+    tilt_bank_of: str = "hypotheses"  # only plane hypotheses' views, or "all" oblique ones
 
     def __post_init__(self):
         if self.tilt_bank_of not in TILT_BANK_OF:

@@ -330,7 +330,11 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
         conf = ExtractConf.from_dict(
             {
                 "vp": {"enabled": False},
-                "rectify": {"max_viewing_angle_deg": 86.0, "tilt_steps": steps},
+                "rectify": {
+                    "max_viewing_angle_deg": 86.0,
+                    "tilt_steps": steps,
+                    "tilt_bank_of": "all",  # the normals given are a depth plane
+                },
                 "dedup": {"extra_frac": 0.5, "keep_all_plain": True, "max_plain_cosine": 0.9},
             }
         )

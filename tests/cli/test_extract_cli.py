@@ -124,9 +124,10 @@ def test_extract_rectifies_with_depth_and_is_plain_without(scene, tmp_path):
         p = hloc_h5.read(tmp_path / "p.h5", name)
         np.testing.assert_allclose(p["keypoints"], plain.keypoints, atol=1e-3)
         r = hloc_h5.read(tmp_path / "r.h5", name)
-        # rectified keypoints: most are not where plain SIFT put one
+        # rectified keypoints on top of plain SIFT's (at most +50 %): many, at least a fifth
+        # of plain SIFT's count, are not where plain SIFT put one
         d = np.linalg.norm(r["keypoints"][:, None] - p["keypoints"][None], axis=2).min(1)
-        assert (d > 0.5).sum() > 0.3 * len(r["keypoints"])
+        assert (d > 0.5).sum() > 0.2 * len(p["keypoints"])
 
 
 def test_single_camera_and_workers(scene, tmp_path):
