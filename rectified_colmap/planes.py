@@ -26,12 +26,17 @@ from .geometry import order_frame
 logger = logging.getLogger(__name__)
 
 
+HYPOTHESIS_AXIS = -1
+"""``Patch.axis`` of a plane hypothesis from a pair of vanishing points (no dominant
+direction: rectified_colmap.vp.hypotheses)."""
+
+
 @dataclass
 class Patch:
     mask: np.ndarray
     """(h, w) bool at the normals' grid (work resolution)."""
     axis: int
-    """Index k of the dominant direction."""
+    """Index k of the dominant direction, or HYPOTHESIS_AXIS for a plane hypothesis."""
     normal: np.ndarray
     """(3,) unit normal of the patch: +-d_k, the sign of its label, facing the camera."""
     area_frac: float

@@ -26,7 +26,7 @@ from . import camera as cam_utils
 from .config import RectifyConf
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
 from .geometry import axis_angle_rotation, smallest_rotation
-from .planes import Patch
+from .planes import HYPOTHESIS_AXIS, Patch
 
 logger = logging.getLogger(__name__)
 
@@ -473,8 +473,8 @@ def with_tilt_neighbours(
     """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
     of those in ``todo`` seen at conf.tilt_bank_min_angle_deg or more (appended after all
     of ``patches``, each a patch of its own), and ``todo`` with their indices added. With
-    conf.tilt_bank_of "hypotheses" only plane hypotheses' patches (axis -1: planes from
-    pairs of vanishing points, rectified_colmap.vp.hypotheses) get neighbours."""
+    conf.tilt_bank_of "hypotheses" only plane hypotheses' patches (HYPOTHESIS_AXIS: planes
+    from pairs of vanishing points, rectified_colmap.vp.hypotheses) get neighbours."""
     if conf.tilt_steps <= 0 or not todo:
         return patches, todo
     angle = viewing_angles(camera, [patches[i] for i in todo])
@@ -482,7 +482,7 @@ def with_tilt_neighbours(
     for i, a in zip(list(todo), angle):
         if a < conf.tilt_bank_min_angle_deg:
             continue
-        if conf.tilt_bank_of == "hypotheses" and patches[i].axis != -1:
+        if conf.tilt_bank_of == "hypotheses" and patches[i].axis != HYPOTHESIS_AXIS:
             continue
         for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
             todo.append(len(patches))

@@ -5,7 +5,7 @@ import pytest
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.camera import make_camera, rays_to_image
 from rectified_colmap.config import RectifyConf
-from rectified_colmap.planes import Patch
+from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
 from rectified_colmap.rectify import (
     Rectification,
     image_to_rectified_homography,
@@ -268,7 +268,7 @@ def test_tilt_neighbours_scale_the_tilt_exactly(name):
 
 
 def test_tilt_bank_of_hypotheses_banks_only_plane_hypotheses():
-    """With rectify.tilt_bank_of "hypotheses" only patches of axis -1 (plane hypotheses
+    """With rectify.tilt_bank_of "hypotheses" only patches of HYPOTHESIS_AXIS (plane hypotheses
     from pairs of vanishing points) get tilt neighbours; with "all" every oblique patch in
     ``todo`` does, and a frontal one none. Neighbours are appended with their indices."""
     from rectified_colmap.rectify import with_tilt_neighbours
@@ -276,7 +276,7 @@ def test_tilt_bank_of_hypotheses_banks_only_plane_hypotheses():
     cam = camera("PINHOLE")
     oblique = unit([-0.8, 0.15, -0.55])  # about 57 degrees from the rays
     depth_patch = full_patch(oblique)
-    hyp_patch = Patch(depth_patch.mask, -1, oblique, 1.0)
+    hyp_patch = Patch(depth_patch.mask, HYPOTHESIS_AXIS, oblique, 1.0)
     frontal = full_patch([0.0, 0.0, -1.0])
     patches = [depth_patch, hyp_patch, frontal]
     for bank_of, banked in (("all", [0, 1]), ("hypotheses", [1])):

@@ -29,7 +29,7 @@ import pycolmap
 from .. import camera as cam_utils
 from ..config import VpConf
 from ..geometry import line_angle_deg
-from ..planes import Patch
+from ..planes import HYPOTHESIS_AXIS, Patch
 from .segments import Segments, _unit, sin_errors
 
 
@@ -144,8 +144,8 @@ def hypothesis_patches(
         existing: normals (3,) of the patches the image already has (depth or lines): a
             hypothesis within conf.hypothesis_merge_angle_deg of one of them is skipped.
     Returns:
-        Patches (axis -1) whose masks hold every work cell seeing the plane from the front
-        (ray . n < 0); they overlap each other and the existing patches.
+        Patches (axis HYPOTHESIS_AXIS) whose masks hold every work cell seeing the plane
+        from the front (ray . n < 0); they overlap each other and the existing patches.
     """
     h, w = work_shape
     rays = cam_utils.unit_grid_rays(camera, w, h)
@@ -159,6 +159,6 @@ def hypothesis_patches(
         if line_angle_deg(n, _OPTICAL_AXIS) < conf.hypothesis_min_tilt_deg:
             continue
         mask = rays @ n < 0
-        out.append(Patch(mask, -1, n, float(mask.mean())))
+        out.append(Patch(mask, HYPOTHESIS_AXIS, n, float(mask.mean())))
         have.append(n)
     return out
