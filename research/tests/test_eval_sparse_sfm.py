@@ -13,7 +13,6 @@ import pycolmap
 import pytest
 
 from rectified_colmap_research.evaluation import colmap_sfm
-from scipy.spatial.transform import Rotation
 from scripts_util import load_script
 
 from rectified_colmap.errors import run_script
@@ -23,9 +22,29 @@ from tests.scenes import street_orbit
 script = load_script("eval_sparse_sfm")
 
 
+def _rotvec(v_deg) -> np.ndarray:
+    """(..., 3) rotation vectors in degrees -> (..., 3, 3) rotation matrices (Rodrigues)."""
+    v = np.deg2rad(np.asarray(v_deg, np.float64))
+    flat = [cv2.Rodrigues(x.reshape(3, 1))[0] for x in v.reshape(-1, 3)]
+    return np.array(flat).reshape(v.shape[:-1] + (3, 3))
+
+
+def _about_z(deg) -> np.ndarray:
+    """(N, 1) angles in degrees -> (N, 3, 3) rotations about the z axis."""
+    return _rotvec(np.asarray(deg, np.float64) * [0.0, 0.0, 1.0])
+
+
+def _random_rotations(rng, n) -> np.ndarray:
+    """n rotations drawn uniformly (QR of Gaussian matrices, signs fixed: Haar measure)."""
+    q, r = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+    q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return q
+
+
 def _cameras(rng, n, centres=None):
     """n random cam_from_world rotations and centres (random, or the given ones)."""
-    R = Rotation.random(n, random_state=rng.integers(1 << 31)).as_matrix()
+    R = _random_rotations(rng, n)
     c = rng.normal(size=(n, 3)) * [3.0, 2.0, 1.0] if centres is None else np.asarray(centres)
     return R, c
 
@@ -35,7 +54,8 @@ def _similar(R_ref, c_ref, s, R, t):
     return R_ref @ R, (c_ref - t) @ R / s
 
 
-SIM = (2.5, Rotation.from_euler("xyz", [30, -70, 110], degrees=True).as_matrix(), [4, -1, 7])
+# x, then y, then z turns about fixed axes
+SIM = (2.5, _rotvec([0, 0, 110]) @ _rotvec([0, -70, 0]) @ _rotvec([30, 0, 0]), [4, -1, 7])
 
 
 def test_a_similarity_transform_of_the_reference_has_no_error():
@@ -58,7 +78,7 @@ def test_rotation_perturbations_come_back_exactly():
     a, b = [1.0, 2.0, 2.0], [0.0, 1.0, -3.0]
     vecs = np.array([a, a, b, b, a]) / np.linalg.norm([a, a, b, b, a], axis=1, keepdims=True)
     angles = np.array([7.0, -7.0, 30.0, -30.0, 0.0])
-    P = Rotation.from_rotvec(vecs * angles[:, None], degrees=True).as_matrix()
+    P = _rotvec(vecs * angles[:, None])
     rot, pos = script.pose_errors(R_ref @ P @ SIM[1], c_est, R_ref, c_ref)
     np.testing.assert_allclose(rot, np.abs(angles), atol=1e-5)
     np.testing.assert_allclose(pos, 0, atol=1e-9)
@@ -80,7 +100,7 @@ def test_position_perturbations_that_leave_the_fit_unchanged_come_back_exactly()
 
 
 def test_nearest_view_angle():
-    R = Rotation.from_euler("z", [[0], [10], [30], [70]], degrees=True).as_matrix()
+    R = _about_z([[0], [10], [30], [70]])
     # nearest: 10, 10, 20, 40 -> median 15
     assert script.nearest_neighbour_deg(R) == pytest.approx(15.0)
     assert np.isnan(script.nearest_neighbour_deg(R[:1]))
