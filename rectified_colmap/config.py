@@ -101,6 +101,12 @@ class SiftConf:
     pool_coarse_first: bool = True  # coarse-first also for plain SIFT on the whole image...
     pool_coarse_first_min_pixels: float = 3e6  # ...on images of at least this many pixels
 
+    def __post_init__(self):
+        if self.max_num_features < 1:
+            raise ValueError(
+                f"sift.max_num_features must be at least 1, got {self.max_num_features}"
+            )
+
 
 DISPARITY_SHIFTS = ("zero", "orthogonal")
 """Values of ``DepthConf.disparity_shift`` (rectified_colmap.disparity)."""
@@ -179,6 +185,15 @@ class ExtractConf:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+    def validate(self) -> "ExtractConf":
+        """Each section's own checks again (values set after construction); ValueError
+        naming the key. Returns self."""
+        for f in dataclasses.fields(self):
+            sub = getattr(self, f.name)
+            if hasattr(sub, "__post_init__"):
+                sub.__post_init__()
+        return self
 
     @classmethod
     def from_dict(cls, conf: dict[str, Any] | None = None) -> "ExtractConf":

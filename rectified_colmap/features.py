@@ -78,6 +78,10 @@ class Features:
         )
 
 
+MIN_SIFT_SIDE = 16
+"""Images (and rectified views) with a shorter side get no SIFT features."""
+
+
 def similarity_frames(scales: np.ndarray, orientations: np.ndarray) -> np.ndarray:
     """(N,) scales and orientations (rad) -> (N, 2, 2) frames s [[cos, -sin], [sin, cos]]."""
     c, s = np.cos(orientations), np.sin(orientations)
@@ -250,7 +254,7 @@ def detect_sift(
     if image.ndim != 2 or image.dtype != np.uint8:
         raise ValueError(f"SIFT needs a (h, w) uint8 image, got {image.shape} {image.dtype}")
     n = conf.max_num_features if max_num_features is None else max_num_features
-    if n <= 0 or min(image.shape) < 16:
+    if n <= 0 or min(image.shape) < MIN_SIFT_SIDE:
         return Features.empty()
     sx = sy = 1.0
     h, w = image.shape

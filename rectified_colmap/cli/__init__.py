@@ -42,6 +42,17 @@ def bool_flag_value(text: str) -> bool:
         raise argparse.ArgumentTypeError(f"expected 0 or 1, got {text!r}") from None
 
 
+def positive_int(text: str) -> int:
+    """argparse type of counts that must be at least 1 (a budget of 0 gives no features)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def normalize_bool_flags(argv: list[str]) -> list[str]:
     """``--single_camera`` [0|1] -> ``--single_camera=V``, so that the flag never takes a
     following path as its value (``merge --single_camera a.db b.db``)."""

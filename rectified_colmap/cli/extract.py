@@ -8,7 +8,7 @@ import logging
 import os
 from pathlib import Path
 
-from . import UsageError, bool_flag_value
+from . import UsageError, bool_flag_value, positive_int
 
 logger = logging.getLogger(__name__)
 
@@ -120,12 +120,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--max_num_features",
         "--SiftExtraction.max_num_features",
         dest="max_num_features",
-        type=int,
+        type=positive_int,
         default=None,
-        help="feature budget per image, shared by patches and the rest "
-        "(default: the configuration's, "
-        f"{ExtractConf.from_dict(confs['rectsift']).sift.max_num_features} in "
-        "rectsift)",
+        help="plain SIFT's budget per image, as COLMAP's (it counts detected points; a "
+        "point with two orientations gives two keypoints, as in COLMAP); the rectified "
+        "features come on top, at most dedup.extra_frac of plain SIFT's keypoints "
+        f"({100 * ExtractConf().dedup.extra_frac:.0f} %% in rectsift). Default: the "
+        f"configuration's, {ExtractConf.from_dict(confs['rectsift']).sift.max_num_features} "
+        "in rectsift",
     )
     p.add_argument(
         "--conf",

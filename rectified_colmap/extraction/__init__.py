@@ -98,7 +98,7 @@ def extract(
     an argument, an input folder, the depth model or an output cannot be used."""
     if database is None and hloc_features is None:
         raise ValueError("nothing to write: give a database and/or an hloc feature file")
-    conf = conf if isinstance(conf, ExtractConf) else ExtractConf.from_dict(conf)
+    conf = (conf if isinstance(conf, ExtractConf) else ExtractConf.from_dict(conf)).validate()
     cameras = CameraArgs.checked(
         camera_model, camera_params, single_camera, single_camera_per_folder, focal_length_factor
     )

@@ -63,8 +63,9 @@ class Summary:
         if n:
             lines += [
                 f"keypoints: {self.num_keypoints} in the {n} extracted image(s) "
-                f"({self.num_keypoints / n:.0f} per image); {len(self.plain)} of them "
-                "with plain SIFT only (no depth or no plane worth rectifying)",
+                f"({self.num_keypoints / n:.0f} per image)",
+                f"plain SIFT only: {len(self.plain)} of the {n} extracted image(s) (no depth "
+                "or no plane worth rectifying)",
                 f"time: {self.seconds:.1f} s ({self.seconds / n:.2f} s per extracted image, "
                 f"{n / self.work_seconds if self.work_seconds > 0 else 0:.2f} images/s "
                 "while extracting)",

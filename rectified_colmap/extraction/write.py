@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..features import Features
+from ..features import MIN_SIFT_SIDE, Features
 from ..io import hloc_h5
 from ..io.images import ImageError
 from ..io.lock import check_writable
@@ -100,6 +100,9 @@ class Writer:
             self.summary.fail(out.name, out.error)
             return
         feats = stored_precision(out.result.features)
+        if len(feats) == 0:  # not recorded as done: a later run tries it again
+            self.summary.fail(out.name, self._no_features(out.name))
+            return
         if not self._write(out.name, feats):
             return
         self._count(out.name, feats)
@@ -123,6 +126,18 @@ class Writer:
             self.summary.fail(name, f"writing features: {type(e).__name__}: {e}")
             return False
         return True
+
+    def _no_features(self, name: str) -> str:
+        """Why an image yielded no features, in one line."""
+        cam = self.cameras[name].camera
+        if min(cam.width, cam.height) < MIN_SIFT_SIDE:
+            return (
+                f"no features: the image is {cam.width}x{cam.height}, SIFT needs at least "
+                f"{MIN_SIFT_SIDE} pixels a side; nothing written"
+            )
+        return "no features: SIFT found none (blank, featureless or fully masked image); " + (
+            "nothing written"
+        )
 
     def _count(self, name: str, feats: Features) -> None:
         summary = self.summary
