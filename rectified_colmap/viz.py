@@ -11,8 +11,8 @@ the plane faces (below), non-planar pixels darkened, each rectified region outli
 tagged ``#i``.
 ``<out>/<name>.patches.png``: the rectified patches (fronto-parallel virtual views, black
 outside the patch), each framed in its plane colour (dashed: a hypothesis from vanishing
-points) with a header ``#i``, its kind, the tilt of its normal from the optical axis and
-the number of features it contributed (orange dots).
+points) with a header ``#i``, its kind, its tilt (the angle between the plane and the image
+plane, 0-90 degrees) and the number of features it contributed (orange dots).
 
 Plane colours are a fixed function of the normal in the camera frame (x right, y down,
 z forward; normals face the camera), never of a cluster index, so one orientation has one
@@ -42,7 +42,7 @@ import pycolmap
 
 from . import camera as cam_utils
 from .conventions import pixel_centers, to_opencv_points
-from .geometry import angle_deg
+from .geometry import line_angle_deg
 from .rectify import warp_to_rectified
 from .vp.fusion import VpResult
 
@@ -132,10 +132,12 @@ def orientation_text(normal: np.ndarray, up: np.ndarray = IMAGE_UP) -> str:
 
 
 def tilt_deg(normal: np.ndarray) -> float:
-    """Angle between a normal (facing the camera) and the optical axis, in degrees: 0 =
-    fronto-parallel."""
+    """Angle between a plane and the image plane (between the lines of its normal and the
+    optical axis), in degrees in [0, 90]: 0 = fronto-parallel, 90 = seen edge-on. A plane
+    facing the camera can still have a normal more than 90 degrees from -z (ground seen by
+    a camera pitched up): the dihedral angle is the one a tilt label means."""
     n = np.asarray(normal, np.float64).reshape(3)
-    return float(angle_deg(n / np.linalg.norm(n), np.array([0.0, 0.0, -1.0])))
+    return float(line_angle_deg(n / np.linalg.norm(n), np.array([0.0, 0.0, 1.0])))
 
 
 def label_colours(directions: np.ndarray | None, up: np.ndarray = IMAGE_UP) -> np.ndarray:
@@ -544,8 +546,8 @@ def draw_patches(
         f"{name + ': ' if name else ''}the {len(rects)} rectified patch"
         f"{'es' if len(rects) != 1 else ''}: fronto-parallel views of each plane "
         "(black = outside the patch). Header: #i (region #i in the planes picture), the plane's "
-        "orientation (up = the image's up), tilt = angle between its normal and the optical "
-        "axis, the features it contributed (orange dots)."
+        "orientation (up = the image's up), tilt = angle between the plane and the image "
+        "plane (0-90 deg), the features it contributed (orange dots)."
     )
     items = _plane_legend(u) + [
         (_dot(RECTIFIED_BGR, u), "feature from this patch"),

@@ -115,6 +115,13 @@ def test_ground_is_the_ground_colour_and_walls_take_their_facing():
     assert viz.orientation_text(GROUND) == "ground"
     assert viz.orientation_text(WALL).startswith("wall facing right")
     assert viz.tilt_deg(np.array([0.0, 0.0, -1.0])) == pytest.approx(0.0)
+    # ground seen by a camera pitched up by 2 degrees: the normal is 92 degrees from -z, the
+    # plane 88 degrees from the image plane; labels stay within 0-90
+    up = np.array([0.0, -np.cos(np.radians(2.0)), np.sin(np.radians(2.0))])
+    assert viz.tilt_deg(up) == pytest.approx(88.0)
+    rng = np.random.default_rng(0)
+    tilts = [viz.tilt_deg(n) for n in rng.normal(size=(200, 3))]
+    assert 0.0 <= min(tilts) and max(tilts) <= 90.0
     assert viz.tilt_deg(WALL) == pytest.approx(np.degrees(np.arccos(0.8 * np.cos(0.349066))), 1e-3)
 
 

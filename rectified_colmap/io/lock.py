@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -61,6 +62,17 @@ def check_writable(path: Path | str, what: str = "output") -> None:
             raise IsADirectoryError(f"{path}: the {what} path is a folder")
         if not os.access(path, os.R_OK | os.W_OK):
             raise PermissionError(f"{path}: the {what} file is read-only")
+    # os.access trusts permission bits (always yes for root): a file made and removed
+    # there is the real test (read-only mounts, /proc, full quotas)
+    try:
+        fd, probe = tempfile.mkstemp(dir=existing, prefix=".rectified-colmap-probe-")
+    except OSError as e:
+        raise PermissionError(
+            f"{path}: cannot write the {what}: folder {existing} does not accept new files "
+            f"({e.strerror})"
+        ) from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def lock_path(path: Path | str) -> Path:
@@ -101,7 +113,13 @@ class OutputLock:
             return
         told = False
         while True:
-            fd = os.open(self.file, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fd = os.open(self.file, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as e:
+                raise PermissionError(
+                    f"{self.path}: cannot lock it for writing: its lock file {self.file.name} "
+                    f"cannot be made beside it ({e.strerror})"
+                ) from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:

@@ -5,18 +5,21 @@ without depth (plain SIFT: fast), and checks the exit code, the message and that
 written where the run stopped on a bad argument.
 """
 
+import shutil
 import sqlite3
 import subprocess
 import sys
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 import pycolmap
 import pytest
 
 from rectified_colmap.cli import main, normalize_bool_flags
-from rectified_colmap.config import SiftConf
+from rectified_colmap.config import ExtractConf, SiftConf
+from rectified_colmap.extraction import extract
 from rectified_colmap.features import detect_sift
 from tests.conftest import look_at, plane_view, textured_image
 
@@ -259,3 +262,59 @@ def test_retired_conf_names_warn_and_run_the_default(caplog):
             conf = _load_conf(name, None)
         assert conf == ExtractConf()
         assert any(f"--conf {name} is retired" in r.getMessage() for r in caplog.records)
+
+
+def test_images_without_features_fail_by_name_and_are_retried(images, tmp_path, caplog):
+    """An image that yields no features (1x1, blank) is a named failure (exit 1), not
+    recorded as done: nothing written for it, and the next run tries it again (it was
+    written with 0 keypoints and skipped as "already had features" from then on)."""
+    root = tmp_path / "images"
+    shutil.copytree(images / "a", root)
+    cv2.imwrite(str(root / "dot.png"), np.full((1, 1), 128, np.uint8))
+    cv2.imwrite(str(root / "blank.png"), np.full((300, 400), 128, np.uint8))
+    db, h5 = tmp_path / "db.db", tmp_path / "f.h5"
+    for _ in range(2):  # the second run retries the two, and skips the others
+        caplog.clear()
+        assert _extract(root, db, "--hloc_features", str(h5)) == 1
+        text = caplog.text
+        assert "FAILED dot.png: no features: the image is 1x1" in text
+        assert "FAILED blank.png: no features: SIFT found none" in text
+        assert sorted(_cameras(db)) == ["0.png", "1.png"]
+        with h5py.File(h5, "r") as f:
+            assert sorted(f) == ["0.png", "1.png"]
+    assert "2 skipped" in text and "2 failed" in text
+
+
+def test_zero_feature_budget_is_an_argument_error(images, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    for flag in ("--max_num_features", "--SiftExtraction.max_num_features"):
+        assert _extract(images, db, flag, "0") == 2
+        err = capsys.readouterr().err
+        assert "must be at least 1, got 0" in err and err.count("\n") == 1
+    assert not db.exists()
+    with pytest.raises(ValueError, match="sift.max_num_features must be at least 1"):
+        ExtractConf.from_dict({"sift": {"max_num_features": 0}})
+    conf = ExtractConf()
+    conf.sift.max_num_features = 0  # set after construction: extract() checks again
+    with pytest.raises(ValueError, match="at least 1"):
+        extract(images, database=db, depth_model="none", conf=conf, progress=False)
+    assert not db.exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_unwritable_output_folder_is_named_as_such(images, caplog):
+    """/proc accepts no new file even for root (whom permission bits do not stop): the
+    message names the database and its folder, not the lock file beside it."""
+    assert _extract(images, Path("/proc/db.db")) == 2
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert errors == [
+        "/proc/db.db: cannot write the database: folder /proc does not accept new files "
+        "(No such file or directory)"
+    ]
+
+
+def test_summary_counts_plain_sift_images_as_images(images, tmp_path, caplog):
+    caplog.set_level("INFO")
+    assert _extract(images, tmp_path / "db.db") == 0
+    assert "plain SIFT only: 3 of the 3 extracted image(s)" in caplog.text
+    assert "of them with plain SIFT" not in caplog.text
