@@ -26,7 +26,6 @@ logger.addHandler(logging.NullHandler())
 
 from .config import (  # noqa: E402  (after zlib)
     DedupConf,
-    DepthConf,
     ExtractConf,
     NormalConf,
     PlaneConf,
@@ -56,7 +55,6 @@ __all__ = [
     "RectifyConf",
     "SiftConf",
     "DedupConf",
-    "DepthConf",
     "VpConf",
     "confs",
     "merge_conf",

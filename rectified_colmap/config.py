@@ -30,16 +30,9 @@ class PlaneConf:
 
     max_angle_deg: float = 20.0  # a pixel joins a direction within this angle (or antipode)
     min_area_frac: float = 0.005  # components under this fraction of the image are dropped
-    num_samples: int = 8000  # normals subsampled to fit the three directions
-    num_restarts: int = 4  # starts of the orthogonal k-means (most inliers wins)
-    num_iters: int = 15  # iterations of the orthogonal k-means
     inlier_angle_deg: float = 15.0  # normals further than this from every axis: outliers
     opening_radius: int = 1  # morphological opening of each label mask (work-size pixels)
     min_normals: int = 100  # fewer valid normals: no dominant directions (plain SIFT)
-
-
-TILT_BANK_OF = ("all", "hypotheses")
-"""Values of ``RectifyConf.tilt_bank_of`` (rectified_colmap.rectify.with_tilt_neighbours)."""
 
 
 @dataclass
@@ -54,32 +47,20 @@ class RectifyConf:
     max_total_area_factor: float = 0.8  # cap on all views' area / the image's area
     max_total_pixels: float = 2e6  # cap on all views' pixels, whatever the image size
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
-    keep_plain: bool = True  # replacing mode: plain SIFT also on rectified pixels
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
-    tilt_bank_of: str = "hypotheses"  # only plane hypotheses' views, or "all" oblique ones
-
-    def __post_init__(self):
-        if self.tilt_bank_of not in TILT_BANK_OF:
-            raise ValueError(
-                f"rectify.tilt_bank_of must be one of {TILT_BANK_OF}, got {self.tilt_bank_of!r}"
-            )
 
 
 @dataclass
 class DedupConf:
     """Near-duplicate keypoints and the keypoint cap (rectified_colmap.dedup)."""
 
-    enabled: bool = True  # drop near-duplicate twins across sources (off: concatenate)
     radius_px: float = 1.0  # twins lie closer than this (original-image pixels)...
     min_cosine: float = 0.9  # ...with descriptors more similar than this...
     max_scale_ratio: float = 1.5  # ...and scales within this factor
-    only_across: bool = True  # only twins from different sources (plain, patch k)
-    keep_rectified_tilt_deg: float = 25.0  # replacing mode: the rectified twin wins above this
-    max_plain_cosine: float = 0.9  # drop rectified features this similar to a plain one
+    max_plain_cosine: float = 0.9  # drop rectified features this similar to a plain one (1: off)
     extra_frac: float = 0.5  # rectified features on top: at most this x plain SIFT's count
-    keep_all_plain: bool = True  # every plain feature kept; the cap cuts rectified ones
 
 
 @dataclass
@@ -98,8 +79,7 @@ class SiftConf:
     coarse_first: bool = True  # large images: coarse octaves first (features.detect_sift)
     coarse_first_pixels_per_feature: float = 500.0  # ...from this many pixels per feature
     patch_budget_factor: float = 2.0  # views' SIFT budget / the features they may add
-    pool_coarse_first: bool = True  # coarse-first also for plain SIFT on the whole image...
-    pool_coarse_first_min_pixels: float = 3e6  # ...on images of at least this many pixels
+    pool_coarse_first_min_pixels: float = 3e6  # plain SIFT coarse-first from this many pixels
 
     def __post_init__(self):
         if self.max_num_features < 1:
@@ -108,28 +88,10 @@ class SiftConf:
             )
 
 
-DISPARITY_SHIFTS = ("zero", "orthogonal")
-"""Values of ``DepthConf.disparity_shift`` (rectified_colmap.disparity)."""
-
-
-@dataclass
-class DepthConf:
-    """Disparity -> depth (rectified_colmap.disparity)."""
-
-    disparity_shift: str = "orthogonal"  # "zero", or from two orthogonal planes
-
-    def __post_init__(self):
-        if self.disparity_shift not in DISPARITY_SHIFTS:
-            raise ValueError(
-                f"depth.disparity_shift must be one of {DISPARITY_SHIFTS}, "
-                f"got {self.disparity_shift!r}"
-            )
-
-
 @dataclass
 class VpConf:
-    """Vanishing points: orientation of the depth planes, plane hypotheses, depth-free
-    planes (rectified_colmap.vp; docs/vp.md)."""
+    """Vanishing points: orientation of the depth planes and plane hypotheses
+    (rectified_colmap.vp; docs/vp.md)."""
 
     enabled: bool = True  # line-derived axes replace the depth directions they match
     max_image_size: int = 640  # LSD runs on the image downscaled to this side
@@ -137,38 +99,19 @@ class VpConf:
     max_segments: int = 600  # only the longest segments are kept
     inlier_angle_deg: float = 2.0  # a segment supports a VP within this angle
     num_hypotheses: int = 600  # RANSAC frames (2 lines -> VP1, 1 line -> VP2)
-    num_sample_segments: int = 200  # frames are drawn from the longest segments
-    num_score_segments: int = 300  # frames are scored on the longest segments
-    num_refine_iters: int = 6  # Gauss-Newton iterations of the frame rotation
-    num_refine_starts: int = 3  # best RANSAC frames refined; the tightest wins
     min_vp_segments: int = 8  # a VP is observed with at least this many segments...
     min_vp_support: float = 0.04  # ...holding at least this fraction of the length
     min_strong_support: float = 0.10  # two VPs this strong are needed to trust a frame
-    nfa_angle_deg: float = 1.0  # chance-level test: support within this angle...
-    nfa_window_deg: float = 10.0  # ...against orientations within this angle
     max_log10_nfa: float = -1.0  # an axis is trusted up to this log10 false alarms
     max_sigma_deg: float = 1.5  # max 1-sigma uncertainty of a replacing direction
     snap_angle_deg: float = 25.0  # a depth direction within this snaps to the frame's
-    gravity_angle_deg: float = 10.0  # with a gravity prior: an axis must be this close
-    patch_min_segments: int = 5  # check_patch: fewer segments in a patch, no verdict
-    patch_min_inplane_frac: float = 0.6  # check_patch: in-plane length fraction needed
     seed: int = 0  # RANSAC seed
-    depth_free: bool = False  # images without depth get planes from lines alone
-    support_radius_frac: float = 0.06  # depth-free: window half-side (fraction of side)
-    support_min_lines: float = 0.5  # depth-free: segment lengths per window for each VP
-    depth_free_regions: str = "lines"  # depth-free: "lines" regions or "whole" images
     line_hypotheses: int = 3  # plane hypotheses from pairs of VPs per image (0: off)
     num_free_vps: int = 5  # hypotheses: VPs found one after the other...
     num_free_vp_hypotheses: int = 2000  # ...each from this many segment pairs
     hypothesis_min_vp_angle_deg: float = 20.0  # closer VPs are one family: no plane
     hypothesis_merge_angle_deg: float = 10.0  # hypotheses this close to a better one: skipped
     hypothesis_min_tilt_deg: float = 50.0  # only planes tilted this much from the image
-
-    def __post_init__(self):
-        if self.depth_free_regions not in ("lines", "whole"):
-            raise ValueError(
-                f"vp.depth_free_regions must be 'lines' or 'whole', got {self.depth_free_regions!r}"
-            )
 
 
 @dataclass
@@ -179,7 +122,6 @@ class ExtractConf:
     planes: PlaneConf = field(default_factory=PlaneConf)
     rectify: RectifyConf = field(default_factory=RectifyConf)
     sift: SiftConf = field(default_factory=SiftConf)
-    depth: DepthConf = field(default_factory=DepthConf)
     vp: VpConf = field(default_factory=VpConf)
     dedup: DedupConf = field(default_factory=DedupConf)
 
@@ -200,10 +142,14 @@ class ExtractConf:
         """Defaults updated by a (possibly partial) nested dict; unknown keys raise."""
         out = cls()
         for section, values in (conf or {}).items():
+            if section in RETIRED_KEYS:
+                raise KeyError(f"configuration section {section!r}: {RETIRED_KEYS[section]}")
             if not hasattr(out, section):
                 raise KeyError(f"unknown configuration section {section!r}")
             sub = getattr(out, section)
             for key, value in values.items():
+                if f"{section}.{key}" in RETIRED_KEYS:
+                    raise KeyError(f"{section}.{key}: {RETIRED_KEYS[f'{section}.{key}']}")
                 if not hasattr(sub, key):
                     raise KeyError(f"unknown configuration key {section}.{key}")
                 setattr(sub, key, type(getattr(sub, key))(value))
@@ -241,6 +187,38 @@ confs: dict[str, dict[str, Any]] = {
         "sift": {"coarse_first": False},
     },
 }
+
+_REPLACING = "retired with the replacing mode: plain SIFT's features are always all kept"
+_FIXED = "retired: now a fixed constant of its module"
+_DEPTH_FREE = "retired with the depth-free planes (research/: vp_planes)"
+RETIRED_KEYS: dict[str, str] = {
+    "depth": "retired: a disparity map's shift is always fitted to orthogonal planes",
+    "planes.num_samples": _FIXED + " (planes.NUM_SAMPLES)",
+    "planes.num_restarts": _FIXED + " (planes.NUM_RESTARTS)",
+    "planes.num_iters": _FIXED + " (planes.NUM_ITERS)",
+    "rectify.keep_plain": _REPLACING,
+    "rectify.tilt_bank_of": "retired: tilt neighbours are always around plane hypotheses",
+    "dedup.enabled": "retired: near-duplicates are always resolved",
+    "dedup.only_across": "retired: twins are always sought across sources",
+    "dedup.keep_rectified_tilt_deg": _REPLACING,
+    "dedup.keep_all_plain": _REPLACING,
+    "sift.pool_coarse_first": "retired: set sift.pool_coarse_first_min_pixels instead",
+    "vp.num_sample_segments": _FIXED + " (vp.segments.NUM_SAMPLE_SEGMENTS)",
+    "vp.num_score_segments": _FIXED + " (vp.manhattan.NUM_SCORE_SEGMENTS)",
+    "vp.num_refine_iters": _FIXED + " (vp.manhattan.NUM_REFINE_ITERS)",
+    "vp.num_refine_starts": _FIXED + " (vp.manhattan.NUM_REFINE_STARTS)",
+    "vp.nfa_angle_deg": _FIXED + " (vp.manhattan.NFA_ANGLE_DEG)",
+    "vp.nfa_window_deg": _FIXED + " (vp.manhattan.NFA_WINDOW_DEG)",
+    "vp.gravity_angle_deg": "retired with the gravity prior",
+    "vp.patch_min_segments": "retired with vp.fusion.check_patch",
+    "vp.patch_min_inplane_frac": "retired with vp.fusion.check_patch",
+    "vp.depth_free": _DEPTH_FREE,
+    "vp.support_radius_frac": _DEPTH_FREE,
+    "vp.support_min_lines": _DEPTH_FREE,
+    "vp.depth_free_regions": _DEPTH_FREE,
+}
+"""Configuration keys (and sections) of earlier versions -> why they are gone (from_dict
+says so instead of "unknown key")."""
 
 RETIRED_CONFS: dict[str, str] = {
     "rectsift-wide": "its plane hypotheses from vanishing points are in the default",

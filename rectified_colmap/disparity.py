@@ -1,21 +1,19 @@
 """Disparity -> depth: the unknown shift of affine-invariant disparity.
 
 Depth sources return raw maps (rectified_colmap.depth); this stage turns a ``disparity`` map
-into z-depth (up to scale) with the shift chosen by ``DepthConf.disparity_shift`` (one of
-``config.DISPARITY_SHIFTS``). It comes after planes because choosing the shift fits them.
+into z-depth (up to scale), with the shift fitted to orthogonal planes. It comes after
+planes because choosing the shift fits them.
 
 Relative-depth networks (MiDaS, Depth Anything) predict disparity p = s / z + t with unknown
 scale s and shift t. Scale leaves normals exact; a wrong shift bends planes into curved
 surfaces whose normals tilt toward or away from the optical axis, the more so the farther
-the plane. Two remedies:
-
-- ``zero``: assume t = 0, z = 1 / p;
-- ``orthogonal``: choose t so that the two strongest dominant plane directions (e.g. ground
-  and facade) are orthogonal, as man-made scenes are: a 1-D search over t (log-spaced
-  coarse grid, then a finer one around the best), each step computing normals at low
-  resolution and the orthogonal dominant frame, and measuring the angle between the *free*
-  mean normals of the two best-supported clusters. Falls back to t = 0 when no candidate
-  shows two planes.
+the plane. The shift t is chosen so that the two strongest dominant plane directions (e.g.
+ground and facade) are orthogonal, as man-made scenes are: a 1-D search over t (log-spaced
+coarse grid, then a finer one around the best), each step computing normals at low
+resolution and the orthogonal dominant frame, and measuring the angle between the *free*
+mean normals of the two best-supported clusters. It falls back to t = 0 (z = 1 / p) when no
+candidate shows two planes. (Assuming t = 0 throughout, the other remedy, bent the planes
+of far facades: docs/depth-models.md.)
 
 Shapes: disparity (h, w) float32, NaN / non-finite invalid; the camera is a pycolmap.Camera
 of the full image (the map may have any resolution with the image's aspect ratio).
@@ -24,13 +22,12 @@ of the full image (the map may have any resolution with the image's aspect ratio
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import numpy as np
 import pycolmap
 
 from . import camera as cam_utils
-from .config import DISPARITY_SHIFTS, ExtractConf, PlaneConf
+from .config import ExtractConf, PlaneConf
 from .depth import DepthMap, disparity_to_depth, resample_depth
 from .geometry import scaled_size
 from .normals import backproject, estimate_normals
@@ -41,17 +38,10 @@ logger = logging.getLogger(__name__)
 
 def resolve_disparity(depth: DepthMap, camera: pycolmap.Camera, conf: ExtractConf) -> DepthMap:
     """A ``disparity`` map -> a ``depth`` map (z up to scale, NaN invalid) with the shift of
-    ``conf.depth.disparity_shift``; maps of other kinds are returned as they are."""
+    ``estimate_shift``; maps of other kinds are returned as they are."""
     if depth.kind != "disparity":
         return depth
-    mode = conf.depth.disparity_shift
-    if mode == "zero":
-        shift = 0.0
-    elif mode == "orthogonal":
-        shift = estimate_shift(depth.values, camera, conf)
-    else:
-        raise ValueError(f"depth.disparity_shift must be one of {DISPARITY_SHIFTS}, got {mode!r}")
-    return DepthMap(depth.to_depth(shift), "depth")
+    return DepthMap(depth.to_depth(estimate_shift(depth.values, camera, conf)), "depth")
 
 
 def orthogonality_cost(
@@ -60,18 +50,22 @@ def orthogonality_cost(
     rng: np.random.Generator,
     min_support: float = 0.05,
     min_count: int = 50,
+    num_samples: int = 4000,
+    num_restarts: int = 3,
 ) -> float:
     """|cos| of the angle between the mean normals of the two best-supported dominant
-    clusters (0 = orthogonal); inf when fewer than two clusters have enough support.
+    clusters (0 = orthogonal); inf when fewer than two clusters have enough support. A
+    cheaper fit than the planes stage's (at most ``num_samples`` normals, ``num_restarts``
+    starts): it runs once per candidate shift.
 
     normals: (..., 3) with NaN rows for pixels without a normal."""
     n = normals.reshape(-1, 3)
     n = n[np.isfinite(n).all(1)]
     if len(n) < 2 * min_count:
         return np.inf
-    if len(n) > plane_conf.num_samples:
-        n = n[rng.choice(len(n), plane_conf.num_samples, replace=False)]
-    dirs, _ = fit_dominant_directions(n, plane_conf, rng)
+    if len(n) > num_samples:
+        n = n[rng.choice(len(n), num_samples, replace=False)]
+    dirs, _ = fit_dominant_directions(n, plane_conf, rng, num_samples, num_restarts)
     if dirs is None:
         return np.inf
     dots = n @ np.asarray(dirs, np.float64).T  # (N, 3)
@@ -119,15 +113,11 @@ def estimate_shift(
     w, h = scaled_size(w0, h0, min(max_size, conf.normals.work_max_size))
     p = resample_depth(disparity, w, h)
     rays = cam_utils.grid_rays(camera, w, h)
-    pcf = replace(
-        conf.planes,
-        num_samples=min(conf.planes.num_samples, 4000),
-        num_restarts=min(conf.planes.num_restarts, 3),
-    )
 
     def cost(t: float) -> float:
         z = disparity_to_depth(p, t)
-        return orthogonality_cost(estimate_normals(backproject(z, rays), conf.normals), pcf, rng)
+        normals = estimate_normals(backproject(z, rays), conf.normals)
+        return orthogonality_cost(normals, conf.planes, rng)
 
     coarse = candidate_shifts(p)
     if coarse.size == 0:

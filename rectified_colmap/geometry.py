@@ -149,6 +149,16 @@ def order_frame(D: np.ndarray, support: np.ndarray) -> tuple[np.ndarray, np.ndar
     return D, order
 
 
+def singular_values_2x2(m: np.ndarray) -> np.ndarray:
+    """(N, 2) singular values (larger, smaller) of (N, 2, 2) matrices, in closed form (the
+    eigenvalues of m^T m); e.g. the scales of affine keypoint frames along their two axes."""
+    a, b, c, d = m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1]
+    p, r, q = a * a + c * c, b * b + d * d, a * b + c * d
+    mean = 0.5 * (p + r)
+    half = np.sqrt(0.25 * (p - r) ** 2 + q * q)
+    return np.sqrt(np.maximum(np.stack([mean + half, mean - half], 1), 0.0))
+
+
 def scaled_size(width: int, height: int, max_size: float, min_side: int = 8) -> tuple[int, int]:
     """Size of an image scaled down (never up) so that its longer side is at most max_size.
 

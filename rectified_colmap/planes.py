@@ -26,6 +26,15 @@ from .geometry import order_frame
 logger = logging.getLogger(__name__)
 
 
+NUM_SAMPLES = 8000
+"""Normals subsampled to fit the three directions (more change the directions by less than
+the network's error)."""
+NUM_RESTARTS = 4
+"""Starts of the orthogonal k-means (the strongest normal directions, then random
+rotations); the most inliers win."""
+NUM_ITERS = 15
+"""Iterations of the orthogonal k-means (it stops earlier when the labels settle)."""
+
 HYPOTHESIS_AXIS = -1
 """``Patch.axis`` of a plane hypothesis from a pair of vanishing points (no dominant
 direction: rectified_colmap.vp.hypotheses)."""
@@ -61,7 +70,7 @@ def _modes(cands: np.ndarray, pts: np.ndarray, cos_t: float) -> np.ndarray:
 
 
 def _initial_rotations(
-    n: np.ndarray, conf: PlaneConf, rng: np.random.Generator
+    n: np.ndarray, conf: PlaneConf, rng: np.random.Generator, num_restarts: int
 ) -> list[np.ndarray]:
     """First the strongest normal direction and the strongest direction orthogonal to it,
     then random rotations."""
@@ -79,7 +88,7 @@ def _initial_rotations(
     else:
         d1 = np.cross(d0, [1.0, 0.0, 0.0] if abs(d0[0]) < 0.9 else [0.0, 1.0, 0.0])
     out.append(_nearest_rotation(np.stack([d0, d1, np.cross(d0, d1)])))
-    while len(out) < max(1, conf.num_restarts):
+    while len(out) < max(1, num_restarts):
         q, r = np.linalg.qr(rng.standard_normal((3, 3)))
         out.append(_nearest_rotation(q * np.sign(np.diag(r))))
     return out
@@ -129,13 +138,19 @@ def _canonical(D: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def fit_dominant_directions(
-    normals: np.ndarray, conf: PlaneConf = PlaneConf(), rng: np.random.Generator | None = None
+    normals: np.ndarray,
+    conf: PlaneConf = PlaneConf(),
+    rng: np.random.Generator | None = None,
+    num_samples: int = NUM_SAMPLES,
+    num_restarts: int = NUM_RESTARTS,
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """Orthogonal k-means (with antipodes) on (N, 3) unit normals -> (directions (3, 3) or
     None, support (3,)).
 
-    NaN rows are ignored. Support is the fraction of the (subsampled) valid normals within
-    conf.inlier_angle_deg of each direction. Directions are ordered by support. None when
+    NaN rows are ignored; at most ``num_samples`` normals (drawn with ``rng``) are fitted,
+    from ``num_restarts`` starts (fewer for cheap repeated fits: rectified_colmap.disparity).
+    Support is the fraction of the (subsampled) valid normals within conf.inlier_angle_deg
+    of each direction. Directions are ordered by support. None when
     fewer than conf.min_normals valid normals remain. Deterministic given ``rng``.
     """
     rng = rng if rng is not None else np.random.default_rng(0)
@@ -145,12 +160,12 @@ def fit_dominant_directions(
         logger.debug("only %d valid normals: no dominant directions", len(n))
         return None, np.zeros(3)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    if len(n) > conf.num_samples:
-        n = n[rng.choice(len(n), conf.num_samples, replace=False)]
+    if len(n) > num_samples:
+        n = n[rng.choice(len(n), num_samples, replace=False)]
     cos_t = np.cos(np.deg2rad(conf.inlier_angle_deg))
     best = None
-    for D0 in _initial_rotations(n, conf, rng):
-        D, score, counts = _orthogonal_kmeans(n, D0, cos_t, conf.num_iters)
+    for D0 in _initial_rotations(n, conf, rng, num_restarts):
+        D, score, counts = _orthogonal_kmeans(n, D0, cos_t, NUM_ITERS)
         if best is None or score > best[1]:
             best = (D, score, counts)
     D, counts = _canonical(best[0], best[2])

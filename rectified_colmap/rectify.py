@@ -1,4 +1,6 @@
-"""Plane patches -> virtual fronto-parallel cameras, rectified images, and the map back.
+"""One plane patch -> a virtual fronto-parallel camera, its rectified image, and the map back.
+
+Which patches of an image get views, and within what budget, is rectified_colmap.views.
 
 A patch with normal n (facing the camera) is seen by a virtual camera with the same centre,
 rotated by the smallest rotation R that takes the viewing direction -n onto +z. A ray X of
@@ -25,8 +27,8 @@ import pycolmap
 from . import camera as cam_utils
 from .config import RectifyConf
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
-from .geometry import axis_angle_rotation, smallest_rotation
-from .planes import HYPOTHESIS_AXIS, Patch
+from .geometry import singular_values_2x2, smallest_rotation
+from .planes import Patch
 
 logger = logging.getLogger(__name__)
 
@@ -94,16 +96,6 @@ def _image_to_ray_jacobian(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarra
             - cam_utils.image_to_rays(camera, xy - d)[:, :2]
         ) / (2 * h)
     return J
-
-
-def _min_singular_values(J: np.ndarray) -> np.ndarray:
-    """Smaller singular value of (N, 2, 2) matrices."""
-    a, b, c, d = J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1]
-    p = a * a + c * c
-    r = b * b + d * d
-    q = a * b + c * d
-    lam = 0.5 * (p + r) - np.sqrt(0.25 * (p - r) ** 2 + q * q)
-    return np.sqrt(np.maximum(lam, 0.0))
 
 
 def _rectified_pixel_rays(rect: Rectification) -> np.ndarray:
@@ -182,7 +174,7 @@ def _rectified_mask(
 
 
 @dataclass
-class _PatchView:
+class PatchView:
     """The scale-independent part of plan_rectification for one patch."""
 
     normal: np.ndarray
@@ -216,13 +208,13 @@ def plan_rectification(
     conf.max_patch_side and by conf.max_patch_area_factor x the patch's area in original
     pixels (the rectified area of the patch itself, not of its bounding box), scaling f down.
     """
-    view = _patch_view(camera, patch, conf)
+    view = patch_view(camera, patch, conf)
     if view is None:
         return None
-    return _finish_rectification(camera, view, patch_index, conf, scale)
+    return finish_rectification(camera, view, patch_index, conf, scale)
 
 
-def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _PatchView | None:
+def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> PatchView | None:
     """Rotation, focal length, extent and areas of the patch's cells within the viewing
     angle (plan_rectification without the scale); None when no cell is usable."""
     n = np.asarray(patch.normal, dtype=np.float64)
@@ -254,13 +246,13 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
     _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
     J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
-    smin = _min_singular_values(J)
+    smin = singular_values_2x2(J)[:, 1]
     if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:
         return None
     # Margin of half a work cell around the cell centres, in virtual normalised units.
     half = np.nanmax(0.5 * np.abs(J) @ np.array([sx, sy]), axis=0)
     det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
-    return _PatchView(
+    return PatchView(
         normal=n,
         R=R,
         mask=mask,
@@ -273,8 +265,8 @@ def _patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> _Pa
     )
 
 
-def _view_camera(
-    view: _PatchView, conf: RectifyConf, scale: float
+def view_camera(
+    view: PatchView, conf: RectifyConf, scale: float
 ) -> tuple[np.ndarray, tuple[int, int]]:
     """The virtual intrinsics K (3, 3) and size (width, height) of a patch's view: the
     caps of plan_rectification, then ``scale``."""
@@ -300,12 +292,12 @@ def _view_camera(
     return K, (int(size[0]), int(size[1]))
 
 
-def _finish_rectification(
-    camera: pycolmap.Camera, view: _PatchView, patch_index: int, conf: RectifyConf, scale: float
+def finish_rectification(
+    camera: pycolmap.Camera, view: PatchView, patch_index: int, conf: RectifyConf, scale: float
 ) -> Rectification | None:
     """plan_rectification from a patch's view: ``_view_camera``, then the valid mask; None
     when the mask is empty."""
-    K, (w, h) = _view_camera(view, conf, scale)
+    K, (w, h) = view_camera(view, conf, scale)
     rect = Rectification(
         R=view.R,
         K=K,
@@ -394,168 +386,3 @@ def rectified_to_image(
                     - cam_utils.rays_to_image(camera, rays - d)
                 ) / (2 * h)
     return out, Jp @ Jm
-
-
-def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
-    """(n,) median viewing angle of each patch in degrees: the angle between a cell's ray
-    and the patch normal (0: seen frontally there)."""
-    if not patches:
-        return np.zeros(0)
-    h, w = patches[0].mask.shape
-    rays = cam_utils.unit_grid_rays(camera, w, h)
-    # every patch's cosines on the whole grid in one product, (h, w, n)
-    cos = np.clip(-(rays @ np.stack([p.normal for p in patches], 1)), -1.0, 1.0)
-    angle = np.zeros(len(patches))
-    for i, p in enumerate(patches):
-        c = cos[..., i][p.mask]
-        angle[i] = np.degrees(np.arccos(np.median(c))) if c.size else 0.0
-    return angle
-
-
-def patch_evidence(
-    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per patch: (median viewing angle in degrees (``viewing_angles``), median texture),
-    each (n,).
-
-    Texture is the Sobel gradient magnitude of the image resampled to the work grid
-    (INTER_AREA; 8 x grey levels per work cell; sky and blank walls are under ~5, Strecha
-    facades ~40, cobblestones ~15)."""
-    if not patches:
-        return np.zeros(0), np.zeros(0)
-    h, w = patches[0].mask.shape
-    g = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
-    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-    texture = np.array([np.median(mag[p.mask]) if p.mask.any() else 0.0 for p in patches])
-    return viewing_angles(camera, patches), texture
-
-
-def tilt_neighbours(
-    camera: pycolmap.Camera, patch: Patch, factor: float, steps: int
-) -> list[Patch]:
-    """Patches with ``patch``'s mask whose normals are tilted so that the patch's tilt
-    t = 1 / cos(viewing angle) becomes t * factor**k, k = +-1..+-steps (rotations about
-    n x v, v the patch's mean viewing ray; tilts under 1 or beyond 89 degrees are skipped).
-
-    At strong obliquity the rectification is steep in the orientation: at 70 degrees a
-    5-degree error leaves a residual tilt of 1.3, at 80 degrees one of 1.7, beyond what
-    SIFT absorbs, and the network and vanishing points err by more than that. ASIFT samples
-    tilts factor-spaced (sqrt 2) for the same reason. Both directions count on real photos
-    (evd-dev, docs/evaluation.md "One default"): a plane rectified too little stays
-    foreshortened; one rectified too much is stretched, which hurts less on a single view
-    (synthetic: 40 vs 177 GT-consistent matches for 6 degrees either way at 75) but
-    guessed focal lengths and vanishing points overstate tilts too."""
-    h, w = patch.mask.shape
-    rays = cam_utils.grid_rays(camera, w, h)[patch.mask]
-    v = rays.sum(0)
-    v /= np.linalg.norm(v)
-    n = np.asarray(patch.normal, float) / np.linalg.norm(patch.normal)
-    cos0 = float(np.clip(-(n @ v), 1e-6, 1.0))
-    axis = np.cross(n, v)
-    if np.linalg.norm(axis) < 1e-9:
-        return []
-    axis /= np.linalg.norm(axis)
-    out = []
-    for k in [k for k in range(-steps, steps + 1) if k != 0]:
-        cos_k = cos0 / factor**k
-        if not np.cos(np.deg2rad(89.0)) <= cos_k <= 1.0:
-            continue
-        delta = np.arccos(cos_k) - np.arccos(cos0)  # > 0: more tilt
-        # rotating n about n x v by +delta moves it away from -v (more tilt)
-        normal = axis_angle_rotation(axis, delta) @ n
-        out.append(Patch(patch.mask, patch.axis, normal, patch.area_frac))
-    return out
-
-
-def with_tilt_neighbours(
-    camera: pycolmap.Camera, patches: list[Patch], todo: list[int], conf: RectifyConf
-) -> tuple[list[Patch], list[int]]:
-    """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
-    of those in ``todo`` seen at conf.tilt_bank_min_angle_deg or more (appended after all
-    of ``patches``, each a patch of its own), and ``todo`` with their indices added. With
-    conf.tilt_bank_of "hypotheses" only plane hypotheses' patches (HYPOTHESIS_AXIS: planes
-    from pairs of vanishing points, rectified_colmap.vp.hypotheses) get neighbours."""
-    if conf.tilt_steps <= 0 or not todo:
-        return patches, todo
-    angle = viewing_angles(camera, [patches[i] for i in todo])
-    patches, todo = list(patches), list(todo)
-    for i, a in zip(list(todo), angle):
-        if a < conf.tilt_bank_min_angle_deg:
-            continue
-        if conf.tilt_bank_of == "hypotheses" and patches[i].axis != HYPOTHESIS_AXIS:
-            continue
-        for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
-            todo.append(len(patches))
-            patches.append(p)
-    return patches, todo
-
-
-def patches_worth_rectifying(
-    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch], conf: RectifyConf
-) -> list[int]:
-    """Indices of the patches to rectify. Left to plain SIFT (at full budget: the pipeline
-    fills from plain SIFT) are patches seen nearly frontally (median viewing angle under
-    conf.min_rectify_angle_deg: the warp would change little) and patches without texture
-    (median gradient under conf.min_texture: sky, blank walls)."""
-    angle, texture = patch_evidence(gray, camera, patches)
-    keep = (angle >= conf.min_rectify_angle_deg) & (texture >= conf.min_texture)
-    if len(patches):
-        logger.debug(
-            "patches: viewing angle %s, texture %s -> rectify %s",
-            np.round(angle),
-            np.round(texture),
-            keep.astype(int),
-        )
-    return [int(i) for i in np.flatnonzero(keep)]
-
-
-def rectifications_within_area(
-    camera: pycolmap.Camera, patches: list[Patch], indices: list[int], conf: RectifyConf
-) -> list[Rectification]:
-    """Rectifications (plan_rectification) of the given patches, scaled down together when
-    their summed size exceeds ``conf.max_total_area_factor`` x the image area x the
-    patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
-    to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
-    patches of their size would get), or ``conf.max_total_pixels``. Each patch's view is
-    computed once, and its mask only at the final scale."""
-    views = [(i, _patch_view(camera, patches[i], conf)) for i in indices]
-    views = [(i, v) for i, v in views if v is not None]
-    sizes = [_view_camera(v, conf, 1.0)[1] for _, v in views]
-    total = sum(w * h for w, h in sizes)
-    masks = [patches[i].mask for i in indices]
-    overlap = 1.0
-    if masks:
-        overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
-    budget = conf.max_total_area_factor * camera.width * camera.height * overlap
-    budget = min(budget, conf.max_total_pixels)
-    scale = float(np.sqrt(budget / total)) if total > budget else 1.0
-    rects = (_finish_rectification(camera, v, i, conf, scale) for i, v in views)
-    return [r for r in rects if r is not None]
-
-
-def viewing_masks(
-    camera: pycolmap.Camera,
-    rects: list[Rectification],
-    patches: list[Patch],
-    shape: tuple[int, int],
-    max_viewing_angle_deg: float,
-) -> np.ndarray:
-    """(n, h, w) bool: the work-grid cells each rectification covers: cells of its patch
-    whose viewing angle is within the limit (cells beyond it are left to plain SIFT).
-    Patches may overlap (depth-free whole-image warps): a cell can be in several masks."""
-    h, w = shape
-    rays = cam_utils.unit_grid_rays(camera, w, h)
-    cos_max = np.cos(np.deg2rad(max_viewing_angle_deg))
-    out = np.zeros((len(rects), h, w), bool)
-    for i, rect in enumerate(rects):
-        out[i] = patches[rect.patch_index].mask & (-(rays @ rect.normal) >= cos_max)
-    return out
-
-
-def viewing_coverage(masks: np.ndarray) -> np.ndarray:
-    """(n, h, w) bool viewing_masks -> (h, w) int16: the first rectification covering
-    each cell (-1: none)."""
-    cover = np.full(masks.shape[1:], -1, np.int16)
-    for i in range(len(masks) - 1, -1, -1):
-        cover[masks[i]] = i
-    return cover

@@ -13,13 +13,6 @@ SINGLE_VIEW = {"vp": {"line_hypotheses": 0}, "rectify": {"tilt_steps": 0}}
 """Conf overrides for one rectified view per depth patch: no plane hypotheses from
 vanishing points, no tilt neighbours (tests of one view's geometry and budget)."""
 
-REPLACING = {
-    **SINGLE_VIEW,
-    "dedup": {"keep_all_plain": False, "extra_frac": 0.0, "max_plain_cosine": 1.0},
-}
-"""SINGLE_VIEW in the replacing mode: rectified features take plain ones' places (the
-paper's split), as many keypoints as plain SIFT."""
-
 
 def _view(scene, camera, pose):
     r = synth.render(scene, camera, pose)

@@ -38,10 +38,12 @@ LEVELS = {
     "vp": 4,  # vanishing points: refine / replace the plane directions
     "vp.segments": 4,  # LSD segments on the Gaussian sphere
     "vp.manhattan": 4,  # Manhattan frame, a-contrario trust test
-    "vp.fusion": 4,  # fusion with the depth directions, entry points, per-patch check
-    "vp.line_planes": 4,  # depth-free planes from line support (imports planes)
-    "rectify": 5,
-    "features": 6,
+    "vp.fusion": 4,  # fusion with the depth directions, the entry point
+    "rectify": 5,  # one patch -> its virtual camera, warp, map back
+    "views": 5,  # the views of an image: which patches, tilt neighbours, pixel budget
+    "features": 6,  # the Features container
+    "sift": 6,  # COLMAP SIFT on the image and in its views
+    "budget": 6,  # the feature budget: cap, views' budgets, the cut
     "dedup": 7,
     "io.colmap_db": 8,
     "io.hloc_h5": 8,

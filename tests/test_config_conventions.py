@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import conventions
-from rectified_colmap.config import DISPARITY_SHIFTS, DepthConf, ExtractConf, confs, merge_conf
+from rectified_colmap.config import RETIRED_KEYS, ExtractConf, confs, merge_conf
 
 
 def test_conf_from_dict_merges_and_rejects_unknown():
@@ -24,13 +24,13 @@ def test_merge_conf_overrides_key_by_key_and_changes_no_input():
         "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
         "rectify": {"max_viewing_angle_deg": 86.0},
         "dedup": {"extra_frac": 0.5},
-        "sift": {"pool_coarse_first": False},
+        "sift": {"coarse_first": False},
     }
     before = {section: dict(values) for section, values in base.items()}
     overrides = {"vp": {"line_hypotheses": 1}, "sift": {"max_num_features": 1024}}
     merged = merge_conf(base, overrides)
     assert merged["vp"] == {"line_hypotheses": 1, "hypothesis_min_tilt_deg": 50.0}
-    assert merged["sift"] == {"pool_coarse_first": False, "max_num_features": 1024}
+    assert merged["sift"] == {"coarse_first": False, "max_num_features": 1024}
     assert merged["dedup"] == base["dedup"] and merged["rectify"] == base["rectify"]
     assert base == before and overrides["vp"] == {"line_hypotheses": 1}
     assert merge_conf(base, None) == base
@@ -38,17 +38,19 @@ def test_merge_conf_overrides_key_by_key_and_changes_no_input():
     assert conf.vp.line_hypotheses == 1 and conf.dedup.extra_frac == 0.5
 
 
-def test_disparity_shift_is_one_checked_option():
-    assert DISPARITY_SHIFTS == ("zero", "orthogonal")
-    assert ExtractConf().depth.disparity_shift == "orthogonal"
-    for value in DISPARITY_SHIFTS:
-        conf = ExtractConf.from_dict({"depth": {"disparity_shift": value}})
-        assert conf.depth.disparity_shift == value
-    msg = r"depth.disparity_shift must be one of \('zero', 'orthogonal'\), got 'orthogonl'"
-    with pytest.raises(ValueError, match=msg):
-        ExtractConf.from_dict({"depth": {"disparity_shift": "orthogonl"}})
-    with pytest.raises(ValueError, match=msg):
-        DepthConf(disparity_shift="orthogonl")
+def test_retired_keys_say_why_and_are_gone():
+    """A key of an earlier version (e.g. in a user's JSON conf) names the reason it was
+    retired, instead of "unknown key"; none of them is a field any more."""
+    for key, why in RETIRED_KEYS.items():
+        section, _, name = key.partition(".")
+        conf = {section: {name: 1}} if name else {section: {}}
+        with pytest.raises(KeyError, match="retired") as e:
+            ExtractConf.from_dict(conf)
+        assert why in str(e.value)
+        if name:
+            assert not hasattr(getattr(ExtractConf(), section), name), key
+        else:
+            assert not hasattr(ExtractConf(), section), key
 
 
 def test_pixel_centers():

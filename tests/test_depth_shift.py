@@ -72,7 +72,7 @@ def test_single_plane_falls_back_to_zero():
     assert estimate_shift(p, cam()) == 0.0
 
 
-def test_resolve_disparity_uses_the_conf_and_leaves_depth_alone():
+def test_resolve_disparity_fits_the_shift_and_leaves_depth_alone():
     z, _ = plane_scene()
     inv = 1.0 / z
     p = np.where(np.isfinite(inv), 3.0 * inv + 0.5 * np.nanmedian(inv), np.nan).astype(np.float32)
@@ -84,10 +84,3 @@ def test_resolve_disparity_uses_the_conf_and_leaves_depth_alone():
     ortho = resolve_disparity(DepthMap(p, "disparity"), cam(), conf)
     assert ortho.kind == "depth"
     np.testing.assert_array_equal(ortho.values, disparity_to_depth(p, t))
-    conf.depth.disparity_shift = "zero"
-    zero = resolve_disparity(DepthMap(p, "disparity"), cam(), conf)
-    assert zero.kind == "depth"
-    np.testing.assert_array_equal(zero.values, disparity_to_depth(p, 0.0))
-    conf.depth.disparity_shift = "orthogonl"  # set after the conf was built: still an error
-    with pytest.raises(ValueError, match="depth.disparity_shift must be one of"):
-        resolve_disparity(DepthMap(p, "disparity"), cam(), conf)

@@ -3,15 +3,13 @@ import pycolmap
 import pytest
 
 from rectified_colmap.config import SiftConf
-from rectified_colmap.features import (
-    Features,
+from rectified_colmap.budget import split_budget
+from rectified_colmap.features import Features, keypoints_in_mask, similarity_frames
+from rectified_colmap.sift import (
     coarse_first_pays,
     count_detections,
     detect_sift,
-    keypoints_in_mask,
     patch_first_octave,
-    similarity_frames,
-    split_budget,
 )
 from tests.conftest import textured_image
 

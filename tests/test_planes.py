@@ -34,7 +34,7 @@ def test_orthogonal_kmeans_recovers_rotation(seed):
     n = np.concatenate([n, rng.normal(size=(3000, 3))])  # 33% uniform outliers
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     n[:50] = np.nan
-    D, support = fit_dominant_directions(n, PlaneConf(num_samples=4000), np.random.default_rng(7))
+    D, support = fit_dominant_directions(n, PlaneConf(), np.random.default_rng(7))
     assert D is not None
     np.testing.assert_allclose(D @ D.T, np.eye(3), atol=1e-9)
     assert np.linalg.det(D) == pytest.approx(1.0)
@@ -43,7 +43,7 @@ def test_orthogonal_kmeans_recovers_rotation(seed):
     assert np.abs(D[0] @ R[0]) > np.cos(np.deg2rad(1))
     assert support[0] > support[1] > support[2] > 0
     # Deterministic given the generator.
-    D2, _ = fit_dominant_directions(n, PlaneConf(num_samples=4000), np.random.default_rng(7))
+    D2, _ = fit_dominant_directions(n, PlaneConf(), np.random.default_rng(7))
     np.testing.assert_array_equal(D, D2)
 
 

@@ -18,7 +18,6 @@ PUBLIC = [
     "RectifyConf",
     "SiftConf",
     "DedupConf",
-    "DepthConf",
     "VpConf",
     "confs",
     "merge_conf",

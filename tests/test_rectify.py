@@ -247,7 +247,7 @@ def test_tilt_neighbours_scale_the_tilt_exactly(name):
     viewing ray) is the patch's times factor**k, k = +-1, +-2, +-3 (those from 1 to 89
     degrees); the
     normals stay in the plane of the normal and the ray (only the tilt changes)."""
-    from rectified_colmap.rectify import tilt_neighbours
+    from rectified_colmap.views import tilt_neighbours
 
     cam = camera(name)
     mask = np.zeros((GH, GW), bool)
@@ -267,28 +267,26 @@ def test_tilt_neighbours_scale_the_tilt_exactly(name):
         assert abs(np.linalg.det(np.stack([p.normal, n, v]))) < 1e-12  # coplanar
 
 
-def test_tilt_bank_of_hypotheses_banks_only_plane_hypotheses():
-    """With rectify.tilt_bank_of "hypotheses" only patches of HYPOTHESIS_AXIS (plane hypotheses
-    from pairs of vanishing points) get tilt neighbours; with "all" every oblique patch in
-    ``todo`` does, and a frontal one none. Neighbours are appended with their indices."""
-    from rectified_colmap.rectify import with_tilt_neighbours
+def test_only_oblique_plane_hypotheses_get_tilt_neighbours():
+    """Only patches of HYPOTHESIS_AXIS (plane hypotheses from pairs of vanishing points,
+    whose orientations err most) seen at tilt_bank_min_angle_deg or more get tilt
+    neighbours; a depth patch and a frontal hypothesis do not. Neighbours are appended with
+    their indices."""
+    from rectified_colmap.views import with_tilt_neighbours
 
     cam = camera("PINHOLE")
     oblique = unit([-0.8, 0.15, -0.55])  # about 57 degrees from the rays
     depth_patch = full_patch(oblique)
     hyp_patch = Patch(depth_patch.mask, HYPOTHESIS_AXIS, oblique, 1.0)
-    frontal = full_patch([0.0, 0.0, -1.0])
+    frontal = Patch(depth_patch.mask, HYPOTHESIS_AXIS, np.array([0.0, 0.0, -1.0]), 1.0)
     patches = [depth_patch, hyp_patch, frontal]
-    for bank_of, banked in (("all", [0, 1]), ("hypotheses", [1])):
-        conf = RectifyConf(tilt_steps=1, tilt_bank_of=bank_of)
-        out, todo = with_tilt_neighbours(cam, patches, [0, 1, 2], conf)
-        assert out[:3] == patches
-        assert todo == list(range(len(out)))
-        assert len(out) == 3 + 2 * len(banked)  # one step each way (57 deg: both valid)
-        axes = [p.axis for p in out[3:]]
-        assert axes == sum(([patches[i].axis] * 2 for i in banked), [])
-    with pytest.raises(ValueError, match="tilt_bank_of"):
-        RectifyConf(tilt_bank_of="depth")
+    out, todo = with_tilt_neighbours(cam, patches, [0, 1, 2], RectifyConf(tilt_steps=1))
+    assert out[:3] == patches
+    assert todo == list(range(len(out)))
+    assert len(out) == 5  # one step each way around the oblique hypothesis (both valid)
+    assert all(p.axis == HYPOTHESIS_AXIS and p.mask is hyp_patch.mask for p in out[3:])
+    out, todo = with_tilt_neighbours(cam, patches, [0, 2], RectifyConf(tilt_steps=1))
+    assert out == patches and todo == [0, 2]  # not in todo: no neighbours
 
 
 def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
@@ -299,8 +297,10 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
     from rectified_colmap.config import ExtractConf
     from rectified_colmap.eval.matching import match_ratio
     from rectified_colmap.geometry import scaled_size
-    from rectified_colmap.pipeline import extract_image
+    from rectified_colmap.pipeline import extract_image, features_on_top
+    from rectified_colmap.sift import plain_sift
     from rectified_colmap.synth.planar import look_at, plane_view, textured_image
+    from rectified_colmap.views import plan_views
 
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     cam = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
@@ -327,23 +327,14 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
         n_err = (np.eye(3) - np.sin(e) * Kx + (1 - np.cos(e)) * Kx @ Kx) @ n_true
     counts = []
     for steps in (0, 1):
-        conf = ExtractConf.from_dict(
-            {
-                "vp": {"enabled": False},
-                "rectify": {
-                    "max_viewing_angle_deg": 86.0,
-                    "tilt_steps": steps,
-                    "tilt_bank_of": "all",  # the normals given are a depth plane
-                },
-                "dedup": {"extra_frac": 0.5, "keep_all_plain": True, "max_plain_cosine": 0.9},
-            }
-        )
+        conf = ExtractConf.from_dict({"rectify": {"tilt_steps": steps}})
         w, h = scaled_size(640, 480, conf.normals.work_max_size)
-        f0 = extract_image(img0, cam, None, conf, normals=np.broadcast_to(n_err, (h, w, 3)).copy())
-        f1 = extract_image(
-            img1, cam, None, ExtractConf.from_dict({"planes": {"min_area_frac": 2.0}})
-        )
-        a, b = f0.features, f1.features
+        # the erring orientation as a plane hypothesis (a whole-image patch), as the lines give
+        hypothesis = Patch(np.ones((h, w), bool), HYPOTHESIS_AXIS, n_err, 1.0)
+        views = plan_views(img0, cam, [hypothesis], (h, w), conf.rectify)
+        assert len(views.rects) == 1 + 2 * steps
+        a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
+        b = extract_image(img1, cam, None, conf).features  # plain SIFT
         m = match_ratio(
             a.descriptors.astype(np.float32), b.descriptors.astype(np.float32), 0.8, True
         )

@@ -14,7 +14,7 @@ from rectified_colmap.eval.config import EvalConf
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.eval.matching import FeatureSource
 from rectified_colmap.eval.relpose import evaluate_pair
-from rectified_colmap.features import detect_sift
+from rectified_colmap.sift import detect_sift
 from rectified_colmap.io.hloc_h5 import rootsift_unit
 from rectified_colmap.pipeline import extract_image
 from tests.scenes import street_orbit, street_pair, to_pair

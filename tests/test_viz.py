@@ -16,12 +16,8 @@ from rectified_colmap.extraction import extract
 from rectified_colmap.features import Features
 from rectified_colmap.pipeline import ImageResult
 from rectified_colmap.planes import Patch, PlaneResult
-from rectified_colmap.rectify import (
-    plan_rectification,
-    rectified_to_image,
-    viewing_coverage,
-    viewing_masks,
-)
+from rectified_colmap.rectify import plan_rectification, rectified_to_image
+from rectified_colmap.views import viewing_coverage, viewing_masks
 
 W, H = 160, 120
 GRID = (30, 40)  # work grid (h, w)
@@ -150,7 +146,7 @@ def test_overview_colours_plain_and_rectified_keypoints():
 
 
 def _band_has_text(band: np.ndarray) -> bool:
-    bg = np.array(viz._BAND_BGR)
+    bg = np.array(viz.BAND_BGR)
     text = (band.astype(int) - bg).sum(-1) > 300  # light text on the dark band
     return text.sum() > 50 and (band == bg).all(-1).mean() > 0.5
 

@@ -138,13 +138,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--orientation",
-        choices=["depth", "vp", "depth+vp"],
+        choices=["depth", "depth+vp"],
         default=None,
-        help="plane orientations from depth normals only (vp.enabled off), "
-        "depth refined by vanishing points (depth+vp: vp.enabled), or "
-        "vanishing points also for images without depth (vp: vp.enabled "
-        "and vp.depth_free; with --depth_model none: lines only). "
-        "Default: as in --conf",
+        help="plane orientations from depth normals only (vp.enabled off) or depth refined "
+        "by vanishing points (depth+vp: vp.enabled). Default: as in --conf",
     )
     p.add_argument(
         "--num_workers",
@@ -291,7 +288,6 @@ def run(args: argparse.Namespace) -> int:
     apply_colmap_options(args, conf)
     if getattr(args, "orientation", None) is not None:
         conf.vp.enabled = args.orientation != "depth"
-        conf.vp.depth_free = args.orientation == "vp"
     summary = extract(
         args.image_path,
         database=args.database,

@@ -11,8 +11,7 @@ the DepthMap kind of the same name; ``metric_canonical`` becomes ``metric``:
 out * f / canonical_focal with f the camera focal length (px) rescaled to the network input.
 
 Disparity (affine-invariant, p = s/z + t) is returned as it is, kind ``disparity``: choosing
-its shift is a stage of its own (:func:`rectified_colmap.disparity.resolve_disparity`, with
-``DepthConf.disparity_shift``).
+its shift is a stage of its own (:func:`rectified_colmap.disparity.resolve_disparity`).
 """
 
 from __future__ import annotations

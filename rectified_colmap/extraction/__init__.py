@@ -108,7 +108,7 @@ def extract(
         raise FileNotFoundError(f"{mask_path}: mask path is not a folder")
     summary = Summary()
     t_start = time.perf_counter()
-    if depth_path is None and depth_model in (None, "none") and not conf.vp.depth_free:
+    if depth_path is None and depth_model in (None, "none"):
         logger.warning(
             "no depth source (no --depth_path, --depth_model none): every image gets plain SIFT"
         )

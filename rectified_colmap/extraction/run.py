@@ -1,8 +1,9 @@
 """Run step of extraction: the per-image work, one :class:`Outcome` per job, in job order.
 
 A :class:`Worker` holds what a process keeps across images (its depth sources, the
-network loaded once) and processes one image: decode it (the only decode of its pixels in
-the whole extraction), find its depth, run ``pipeline.extract_image``. Runners give it the
+network loaded once, its SIFT extractors kept warm) and processes one image: decode it (the
+only decode of its pixels in the whole extraction), find its depth, run
+``pipeline.extract_image``. Runners give it the
 jobs: :class:`HereRunner` in this process, :class:`PoolRunner` in worker processes, and
 :class:`RayRunner` on Ray actors (``--ray [ADDRESS]``: an existing cluster or a local
 instance; each actor holds its Worker across images, reads the images from the path given,
@@ -35,6 +36,7 @@ from ..depth.registry import load_depth_source
 from ..io.images import ImageError, decode_image, keypoints_on_mask, read_mask
 from ..parallel import capture_logs, check_not_bootstrapping, context, drain, replay
 from ..pipeline import ImageResult, extract_image
+from ..sift import Sift
 from .summary import error_message
 
 logger = logging.getLogger(__package__)
@@ -121,12 +123,13 @@ class WorkerInit:
 
 class Worker:
     """One process's state across images: one OpenCV thread, quiet pycolmap, its depth
-    sources (``sources`` when given, else built from ``init``)."""
+    sources (``sources`` when given, else built from ``init``), its SIFT extractors."""
 
     def __init__(self, init: WorkerInit, sources: dict | None = None):
         cv2.setNumThreads(1)
         quiet_pycolmap()
         self.sources = sources if sources is not None else init.depth_sources()
+        self.sift = Sift()
 
     def process(self, job: Job, conf: ExtractConf, keep: bool) -> Outcome:
         """Decode, depth, extract; an error becomes the outcome's message (the run goes
@@ -141,7 +144,7 @@ class Worker:
                 )
             depth, out.origin = self._depth(rgb, job, out.warnings)
             rng = np.random.default_rng(_seed(job.name))
-            result = extract_image(rgb, job.camera, depth, conf, rng)
+            result = extract_image(rgb, job.camera, depth, conf, rng, self.sift)
             if job.mask is not None:
                 mask = read_mask(job.mask, (W, H))
                 if mask is not None:  # COLMAP: no features where the mask is black

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..features import MIN_SIFT_SIDE, Features
+from ..features import Features
+from ..sift import MIN_SIFT_SIDE
 from ..io import hloc_h5
 from ..io.images import ImageError
 from ..io.lock import check_writable

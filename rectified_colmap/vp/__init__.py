@@ -12,31 +12,25 @@ Modules, in data-flow order (each states its inputs, outputs and conventions):
   ``segments_on_sphere``, ``image_segments``, ``sin_errors``).
 - ``manhattan``: the Manhattan frame (RANSAC + Gauss-Newton) and its a-contrario trust test
   (``ManhattanFrame``, ``fit_manhattan``, ``axis_log10_nfa``, ``log10_binomial_tail``).
-- ``fusion``: frame axes fused with the depth directions, the entry points and the
-  per-patch check (``VpResult``, ``match_frame``, ``fuse_directions``,
-  ``refine_directions``, ``manhattan_from_image``, ``PatchCheck``, ``check_patch``).
-- ``line_planes``: depth-free planes from line support (``line_support_patches``,
-  ``whole_image_patches``, ``depth_free_planes``).
+- ``fusion``: frame axes fused with the depth directions, the entry point
+  (``VpResult``, ``match_frame``, ``fuse_directions``, ``refine_directions``).
 - ``hypotheses``: plane hypotheses from pairs of vanishing points found without a
   Manhattan frame or intrinsics, as whole-image patches (``free_vanishing_points``,
   ``plane_hypotheses``, ``hypothesis_patches``).
 
-Drawing (``draw_segments``, ``draw_directions``) is in rectified_colmap.viz. The names below
-are re-exported for the pipeline and tools; new code may import from the modules.
+Depth-free planes from lines alone are research code (research/: line_planes). The names
+below are re-exported for the pipeline and tools; new code may import from the modules.
 """
 
-from .fusion import VpResult, manhattan_from_image, refine_directions
+from .fusion import VpResult, refine_directions
 from .hypotheses import free_vanishing_points, hypothesis_patches, plane_hypotheses
-from .line_planes import depth_free_planes
 from .segments import image_segments
 
 __all__ = [
     "VpResult",
-    "depth_free_planes",
     "free_vanishing_points",
     "hypothesis_patches",
     "image_segments",
-    "manhattan_from_image",
     "plane_hypotheses",
     "refine_directions",
 ]

@@ -8,8 +8,7 @@ frame axis, and the frame and segments behind it. Conventions: vp.segments (pixe
 sphere) and vp.manhattan (frames).
 
 ``refine_directions`` is the pipeline's entry point (segments -> frame -> fused
-directions); ``manhattan_from_image`` is the depth-free one (the frame itself);
-``check_patch`` asks whether one patch's own lines agree with its normal.
+directions; without directions, the frame alone).
 
 Fusion (``fuse_directions``): depth directions are matched to frame axes (best signed
 permutation); a direction snaps when a confident frame axis (sigma <= max_sigma_deg) lies
@@ -30,7 +29,7 @@ import pycolmap
 from ..config import VpConf
 from ..geometry import angle_deg, smallest_rotation
 from .manhattan import ManhattanFrame, fit_manhattan
-from .segments import Segments, _unit, image_segments
+from .segments import Segments, image_segments
 
 logger = logging.getLogger(__name__)
 
@@ -111,7 +110,6 @@ def refine_directions(
     camera: pycolmap.Camera,
     directions: np.ndarray | None,
     conf: VpConf = VpConf(),
-    gravity: np.ndarray | None = None,
     rng: np.random.Generator | None = None,
     segments: Segments | None = None,
 ) -> VpResult:
@@ -125,7 +123,6 @@ def refine_directions(
         directions: (3, 3) rows from rectified_colmap.planes, or None: then the result only
             carries the frame and its directions stay None.
         conf: VpConf.
-        gravity: optional (3,) camera-frame unit vector (fit_manhattan).
         rng: RANSAC's generator (default: seeded by conf.seed).
         segments: the image's segments (vp.segments.image_segments) when the caller has
             them already; else they are detected here. Their labels are set.
@@ -139,7 +136,7 @@ def refine_directions(
             f"camera is {camera.width}x{camera.height}"
         )
     seg = segments if segments is not None else image_segments(img, camera, conf)
-    mf = fit_manhattan(seg, conf, gravity, rng)
+    mf = fit_manhattan(seg, conf, rng)
     seg.labels = mf.labels
     if directions is None:
         return VpResult(None, np.zeros(3, bool), np.zeros(3), mf.frame, seg, manhattan=mf)
@@ -155,104 +152,3 @@ def refine_directions(
         np.round(change, 1),
     )
     return VpResult(out, snapped, support, mf.frame, seg, sigma, contra, change, mf)
-
-
-def manhattan_from_image(
-    image_gray: np.ndarray,
-    camera: pycolmap.Camera,
-    conf: VpConf = VpConf(),
-    gravity: np.ndarray | None = None,
-    rng: np.random.Generator | None = None,
-) -> VpResult:
-    """Depth-free mode: the line-derived frame as the dominant directions.
-
-    Args:
-        image_gray, camera, conf, gravity, rng: as refine_directions.
-    Returns:
-        VpResult whose ``directions`` (3, 3) is the frame (rows by support, like
-        planes.fit_dominant_directions) when at least two of its axes are confident
-        (sigma <= conf.max_sigma_deg), else None; ``snapped`` (3,) marks the confident
-        axes; ``support`` and ``sigma_deg`` (3,) are the frame's.
-    """
-    res = refine_directions(image_gray, camera, None, conf, gravity, rng)
-    mf = res.manhattan
-    confident = mf.sigma_deg <= conf.max_sigma_deg
-    res.snapped = confident
-    res.support = mf.support.copy()
-    res.sigma_deg = mf.sigma_deg.copy()
-    res.directions = mf.frame.copy() if mf.frame is not None and confident.sum() >= 2 else None
-    return res
-
-
-# -- per patch ----------------------------------------------------------------------------
-
-
-@dataclass
-class PatchCheck:
-    num_segments: int
-    """Segments with a VP label whose midpoint lies in the patch."""
-    inplane_frac: float
-    """Length fraction of them whose VP is (within snap_angle_deg) in the patch's plane."""
-    line_normal: np.ndarray | None
-    """Normal implied by the two VPs with the most segment length in the patch (each with at
-    least max(2, conf.patch_min_segments // 2) segments), signed like ``normal``; None
-    without two such line families."""
-    angle_deg: float
-    """Angle between line_normal and the patch normal (nan without line_normal)."""
-    consistent: bool | None
-    """With line_normal: angle_deg <= conf.snap_angle_deg. Else, with at least
-    conf.patch_min_segments segments: inplane_frac >= conf.patch_min_inplane_frac. Else
-    None (no verdict)."""
-
-
-def check_patch(
-    result: VpResult,
-    mask: np.ndarray,
-    normal: np.ndarray,
-    camera: pycolmap.Camera,
-    conf: VpConf = VpConf(),
-) -> PatchCheck:
-    """Do the patch's own lines agree with its normal?
-
-    Lines lying on a plane vanish on its vanishing line, so the VPs of the patch's segments
-    must be orthogonal to its normal.
-
-    Args:
-        result: a VpResult with its frame and labelled segments.
-        mask: (h, w) bool on any grid covering the image (e.g. the work grid of
-            planes.Patch).
-        normal: (3,) the patch normal.
-        camera: the image's camera (its size maps segment midpoints onto the grid).
-        conf: ``snap_angle_deg``, ``patch_min_segments``, ``patch_min_inplane_frac``.
-    Returns:
-        PatchCheck.
-    """
-    seg, F = result.segments, result.frame
-    n = _unit(np.asarray(normal, np.float64))
-    if F is None or len(seg) == 0:
-        return PatchCheck(0, float("nan"), None, float("nan"), None)
-    h, w = mask.shape
-    mid = seg.xy.mean(1)
-    col = np.clip((mid[:, 0] * w / camera.width).astype(int), 0, w - 1)
-    row = np.clip((mid[:, 1] * h / camera.height).astype(int), 0, h - 1)
-    inside = mask[row, col] & (seg.labels >= 0)
-    num = int(inside.sum())
-    if num == 0:
-        return PatchCheck(0, float("nan"), None, float("nan"), None)
-    lab, L = seg.labels[inside], seg.lengths[inside]
-    inplane_axis = np.abs(F @ n) < np.sin(np.deg2rad(conf.snap_angle_deg))
-    frac = float(L[inplane_axis[lab]].sum() / L.sum())
-    counts = np.bincount(lab, minlength=3)
-    families = np.flatnonzero(counts >= max(2, conf.patch_min_segments // 2))
-    line_normal, angle, verdict = None, float("nan"), None
-    if len(families) >= 2:
-        length = np.bincount(lab, weights=L, minlength=3)
-        a, b = families[np.argsort(-length[families])[:2]]
-        line_normal = _unit(np.cross(F[a], F[b]))
-        if line_normal @ n < 0:
-            line_normal = -line_normal
-        angle = float(angle_deg(line_normal, n))
-        verdict = angle <= conf.snap_angle_deg
-    elif num >= conf.patch_min_segments:
-        verdict = frac >= conf.patch_min_inplane_frac
-    return PatchCheck(num, frac, line_normal, angle, verdict)

@@ -30,7 +30,7 @@ from .. import camera as cam_utils
 from ..config import VpConf
 from ..geometry import line_angle_deg
 from ..planes import HYPOTHESIS_AXIS, Patch
-from .segments import Segments, _unit, sin_errors
+from .segments import NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors
 
 
 _OPTICAL_AXIS = np.array([0.0, 0.0, 1.0])
@@ -52,7 +52,7 @@ def free_vanishing_points(
     """Sequential RANSAC for up to conf.num_free_vps VPs, no orthogonality between them.
 
     Per VP: conf.num_free_vp_hypotheses candidates v = l_a x l_b from pairs of the
-    conf.num_sample_segments longest unassigned segments (drawn with probability ~ length),
+    NUM_SAMPLE_SEGMENTS longest unassigned segments (drawn with probability ~ length),
     scored by the length of the unassigned segments within conf.inlier_angle_deg
     (``sin_errors``); the best is refined by weighted least squares (v = argmin sum_i
     L_i (l_i . v)^2 over its inliers, 3 rounds); its inliers are then removed. Stops when
@@ -74,7 +74,7 @@ def free_vanishing_points(
         idx = np.flatnonzero(free)
         if len(idx) < conf.min_vp_segments:
             break
-        k = idx[: conf.num_sample_segments]
+        k = idx[:NUM_SAMPLE_SEGMENTS]
         p = seg.lengths[k] / seg.lengths[k].sum()
         a, b = rng.choice(k, size=(2, conf.num_free_vp_hypotheses), p=p)
         cand = np.cross(seg.normals[a], seg.normals[b])

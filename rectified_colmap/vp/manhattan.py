@@ -9,9 +9,8 @@ RANSAC over minimal sets from the longest segments (2 lines -> VP1 = l_a x l_b, 
 VP2 = l_c x VP1, VP3 = VP1 x VP2), scored by the inlier length; then Gauss-Newton on the
 rotation (residual sin(theta), weights = segment length) with re-assignment. Per direction:
 support (length fraction), and sigma (1-sigma angular uncertainty from the covariance of
-the rotation; inf when unobserved and not implied by the two others). An optional gravity
-prior (camera-frame unit vector) adds hypotheses containing it and rejects frames without
-an axis near it. Trust (finite sigma) also needs strong support and a sharp VP: the
+the rotation; inf when unobserved and not implied by the two others). Trust (finite sigma)
+also needs strong support and a sharp VP: the
 a-contrario test ``axis_log10_nfa`` rejects axes that locally random segment orientations
 would explain.
 """
@@ -25,7 +24,18 @@ import numpy as np
 
 from ..config import VpConf
 from ..geometry import order_frame, skew
-from .segments import _MIN_SIN, Segments, _unit, sin_errors
+from .segments import _MIN_SIN, NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors
+
+NUM_SCORE_SEGMENTS = 300
+"""RANSAC frames are scored on this many of the longest segments."""
+NUM_REFINE_ITERS = 6
+"""Gauss-Newton iterations of the frame rotation (annealed threshold 3x -> 1x)."""
+NUM_REFINE_STARTS = 3
+"""The best RANSAC frames refined; the tightest soft inlier length wins."""
+NFA_ANGLE_DEG = 1.0
+"""Chance-level test (axis_log10_nfa): support within this angle of an axis..."""
+NFA_WINDOW_DEG = 10.0
+"""...against the segments within this angle (locally uniform orientations)."""
 
 _WEXP = 1.0  # segment weights ~ length^_WEXP (2 lets long clutter edges dominate)
 _CS = 0.25  # Cauchy scale of the refinement, x sin(inlier angle)
@@ -53,11 +63,9 @@ class ManhattanFrame:
     chance. Rows above conf.max_log10_nfa are never trusted."""
 
 
-def _hypotheses(
-    seg: Segments, conf: VpConf, rng: np.random.Generator, gravity: np.ndarray | None
-) -> np.ndarray:
+def _hypotheses(seg: Segments, conf: VpConf, rng: np.random.Generator) -> np.ndarray:
     """(M, 3, 3) candidate frames from minimal line sets of the longest segments."""
-    k = min(len(seg), conf.num_sample_segments)
+    k = min(len(seg), NUM_SAMPLE_SEGMENTS)
     L = seg.normals[:k]  # segments are sorted longest first
     p = seg.lengths[:k] / seg.lengths[:k].sum()
     num = conf.num_hypotheses
@@ -65,19 +73,10 @@ def _hypotheses(
     v1 = np.cross(L[a], L[b])
     ok = np.linalg.norm(v1, axis=1) > 1e-3
     v1 = _unit(v1)
-    if gravity is not None:
-        g = _unit(np.asarray(gravity, np.float64).reshape(3))
-        v1 = np.concatenate([v1, np.tile(g, (k, 1))])
-        c = np.concatenate([c, np.arange(k)])
-        ok = np.concatenate([ok, np.ones(k, bool)])
     v2 = np.cross(L[c], v1)
     ok &= np.linalg.norm(v2, axis=1) > 1e-3
     v2 = _unit(v2)
-    frames = np.stack([v1, v2, np.cross(v1, v2)], 1)[ok]
-    if gravity is not None and len(frames):
-        cos_g = np.abs(frames @ g).max(1)
-        frames = frames[cos_g >= np.cos(np.deg2rad(conf.gravity_angle_deg))]
-    return frames
+    return np.stack([v1, v2, np.cross(v1, v2)], 1)[ok]
 
 
 def _ransac_scores(seg: Segments, frames: np.ndarray, sin_thr: float, num: int) -> np.ndarray:
@@ -122,7 +121,7 @@ def _refine(
     w_all = seg.lengths**_WEXP / (seg.lengths**_WEXP).mean()
     A = np.zeros((3, 3))
     r = J = w = None
-    num = max(1, conf.num_refine_iters)
+    num = NUM_REFINE_ITERS
     # annealed threshold: 3x down to 1x (escapes the minima of a hard threshold near the
     # RANSAC frame)
     scales = np.concatenate([np.linspace(3.0, 1.0, max(num - 1, 1)), [1.0, 1.0]])
@@ -146,7 +145,7 @@ def _refine(
         # Cauchy weights: clutter passing the threshold pulls less than the true lines
         w = w_all[use] / (1.0 + (r / (_CS * sin_thr)) ** 2)
         A = (J * w[:, None]).T @ J
-        if it == conf.num_refine_iters:
+        if it == NUM_REFINE_ITERS:
             break
         g = (J * w[:, None]).T @ r
         step = -np.linalg.pinv(A, rcond=1e-8) @ g
@@ -193,13 +192,15 @@ def log10_binomial_tail(n: np.ndarray, k: np.ndarray, p: float) -> np.ndarray:
     return np.where(k > n, -np.inf, out)
 
 
-def axis_log10_nfa(errors_deg: np.ndarray, conf: VpConf = VpConf()) -> np.ndarray:
+def axis_log10_nfa(
+    errors_deg: np.ndarray, angle_deg: float = NFA_ANGLE_DEG, window_deg: float = NFA_WINDOW_DEG
+) -> np.ndarray:
     """A-contrario test of each frame axis against locally random segment orientations.
 
     errors_deg (N, 3): consistency angle (vp.segments docstring) of each segment with each
     axis, degrees. Null hypothesis: near any VP, segment orientations are uniform within
-    the window w = conf.nfa_window_deg, so of the n_w segments within w of axis k (those
-    that are inliers of another axis excluded), each lies within t = conf.nfa_angle_deg
+    the window w = ``window_deg``, so of the n_w segments within w of axis k (those
+    that are inliers of another axis excluded), each lies within t = ``angle_deg``
     with probability t / w: P_k = P[Binomial(n_w, t / w) >= n_t], n_t the segments within
     t. This keeps the broad orientation bias of foreshortened texture (which a test
     against uniform orientations would take for structure) and rejects only what is
@@ -211,9 +212,9 @@ def axis_log10_nfa(errors_deg: np.ndarray, conf: VpConf = VpConf()) -> np.ndarra
     NFA per axis, of the frame up to that axis: log10(tests) + log10 P_k, raised to the
     NFA of the better ranked axes (an axis is only as meaningful as the frame it needs)."""
     E = np.asarray(errors_deg, np.float64).reshape(-1, 3)
-    t, w = float(conf.nfa_angle_deg), float(conf.nfa_window_deg)
+    t, w = float(angle_deg), float(window_deg)
     if not 0.0 < t < w:
-        raise ValueError(f"vp: need 0 < nfa_angle_deg < nfa_window_deg, got {t}, {w}")
+        raise ValueError(f"vp: need 0 < angle_deg < window_deg, got {t}, {w}")
     inl = E < t
     other = np.stack([np.delete(inl, k, axis=1).any(1) for k in range(3)], 1) & ~inl
     n_w = ((E < w) & ~other).sum(0)
@@ -228,15 +229,9 @@ def axis_log10_nfa(errors_deg: np.ndarray, conf: VpConf = VpConf()) -> np.ndarra
 
 
 def fit_manhattan(
-    seg: Segments,
-    conf: VpConf = VpConf(),
-    gravity: np.ndarray | None = None,
-    rng: np.random.Generator | None = None,
+    seg: Segments, conf: VpConf = VpConf(), rng: np.random.Generator | None = None
 ) -> ManhattanFrame:
-    """Three orthogonal VPs from segments on the sphere (RANSAC + Gauss-Newton).
-
-    ``gravity``: optional camera-frame unit vector (e.g. [0, 1, 0] for an upright camera);
-    it only adds hypotheses and rejects frames without an axis near it."""
+    """Three orthogonal VPs from segments on the sphere (RANSAC + Gauss-Newton)."""
     rng = rng if rng is not None else np.random.default_rng(conf.seed)
     n = len(seg)
     none = ManhattanFrame(
@@ -244,14 +239,14 @@ def fit_manhattan(
     )
     if n < 3:
         return none
-    frames = _hypotheses(seg, conf, rng, gravity)
+    frames = _hypotheses(seg, conf, rng)
     if len(frames) == 0:
         return none
     sin_thr = np.sin(np.deg2rad(conf.inlier_angle_deg))
-    score = _ransac_scores(seg, frames, sin_thr, conf.num_score_segments)
+    score = _ransac_scores(seg, frames, sin_thr, NUM_SCORE_SEGMENTS)
     # refine the best few distinct hypotheses; the tightest soft inlier length wins
     best = None
-    for i in np.argsort(-score)[: max(1, conf.num_refine_starts)]:
+    for i in np.argsort(-score)[:NUM_REFINE_STARTS]:
         cand = _refine(seg, frames[i], conf)
         e = sin_errors(seg.normals, seg.mids, cand[0]).min(1)
         soft = float(seg.lengths @ np.maximum(0.0, 1.0 - (e / sin_thr) ** 2))
@@ -268,7 +263,7 @@ def fit_manhattan(
     # Trust needs strong VPs: random clutter alone reaches ~0.06 support per VP; and
     # sharp ones: foreshortened line-free texture gives 0.10-0.15 (axis_log10_nfa)
     errors = np.degrees(np.arcsin(np.minimum(sin_errors(seg.normals, seg.mids, F), 1.0)))
-    log10_nfa = axis_log10_nfa(errors, conf)
+    log10_nfa = axis_log10_nfa(errors)
     strong = observed & (support >= conf.min_strong_support) & (log10_nfa <= conf.max_log10_nfa)
     if strong.sum() == 0:
         sigma = np.full(3, np.inf)

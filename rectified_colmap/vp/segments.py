@@ -35,6 +35,9 @@ from ..conventions import from_opencv_points
 from ..geometry import scaled_size
 
 _MIN_SIN = 0.05  # floor of |m x v| (VP on the segment's midpoint: angle undefined)
+NUM_SAMPLE_SEGMENTS = 200
+"""Minimal sets of RANSAC (vp.manhattan, vp.hypotheses) are drawn from this many of the
+longest segments."""
 
 
 @dataclass

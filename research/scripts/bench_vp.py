@@ -32,7 +32,8 @@ from rectified_colmap.config import VpConf
 from rectified_colmap.synth.planar import look_at, plane_view, textured_image
 from rectified_colmap.synth.lines import axis_errors_deg, render_street, rot, street_camera
 from rectified_colmap.viz import draw_directions, draw_segments, save_png
-from rectified_colmap.vp.fusion import manhattan_from_image, refine_directions
+from rectified_colmap.vp.fusion import refine_directions
+from rectified_colmap_research.line_planes import manhattan_from_image
 from rectified_colmap.errors import run_script
 
 

@@ -15,10 +15,11 @@ For each image, in this one process, single-threaded, one method after the other
   the budget per synthesised view: rectified_colmap_research.evaluation.asift, as
   eval_homography.py runs it), the view-synthesis anchor.
 
-Before each method the SIFT extractors are released and the peak resident memory of the
-process (VmHWM) is reset, so ``plain_MB`` / ``rect_MB`` are the process's peak during that
-method (baseline of Python, pycolmap, onnxruntime and the network included); ``rss_MB`` is
-the resident memory after the image (flat over many images: no growth). Ratios are taken
+Before each method the SIFT extractors (one ``Sift`` for the run) are released and the
+peak resident memory of the process (VmHWM) is reset, so ``plain_MB`` / ``rect_MB`` are the
+process's peak during that method (baseline of Python, pycolmap, onnxruntime and the
+network included); ``rss_MB`` is the resident memory after the image (flat over many
+images: no growth). Ratios are taken
 within the same run, so they hold on a noisy machine better than absolute seconds.
 
 Seconds are CPU seconds of this process (``--clock cpu``, the default: everything runs on
@@ -49,7 +50,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rectified_colmap import camera as cam_utils  # noqa: E402
-from rectified_colmap import features, pipeline  # noqa: E402
+from rectified_colmap import pipeline  # noqa: E402
 from rectified_colmap.config import (  # noqa: E402
     DEFAULT_DEPTH_MODEL,
     ExtractConf,
@@ -58,10 +59,11 @@ from rectified_colmap.config import (  # noqa: E402
 )
 from rectified_colmap.depth import DepthMap  # noqa: E402
 from rectified_colmap.errors import run_script  # noqa: E402
-from rectified_colmap.features import detect_sift, release_extractors  # noqa: E402
+from rectified_colmap.sift import Sift, detect_sift  # noqa: E402
 from rectified_colmap.io.images import list_images, read_image  # noqa: E402
 from rectified_colmap.pipeline import extract_image  # noqa: E402
 from rectified_colmap_research.evaluation.asift import asift_features  # noqa: E402
+from rectified_colmap_research.memory import retain_freed_memory  # noqa: E402
 
 STAGES = ["depth", "normals", "planes", "homographies", "sift_plain", "warps+sift_patches", "dedup"]
 COLUMNS = STAGES + [
@@ -198,7 +200,7 @@ def main(argv=None) -> int:
     p.add_argument(
         "--retain_memory",
         action="store_true",
-        help="features.retain_freed_memory() first (both methods)",
+        help="rectified_colmap_research.memory.retain_freed_memory() first (both methods)",
     )
     p.add_argument("--patch_first_octave", type=int, help="override sift.patch_first_octave")
     p.add_argument(
@@ -217,10 +219,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     cv2.setNumThreads(1)
     if args.retain_memory:
-        features.retain_freed_memory()
+        retain_freed_memory()
     if args.clock == "wall":
         Clock.perf_counter = staticmethod(time.perf_counter)
-    # the pipeline's stage timings on the same clock
+    # the pipeline's stage timings (wall seconds) on the same clock: its module's time
     pipeline.time = types.SimpleNamespace(perf_counter=Clock.perf_counter)
     overrides = json.loads(args.rect_conf) if args.rect_conf else None
     conf = ExtractConf.from_dict(merge_conf(confs[args.conf], overrides))
@@ -251,29 +253,29 @@ def main(argv=None) -> int:
         f"(0 from {conf.sift.patch_octave0_pixels_per_feature:g} px/feature); "
         f"rect_conf={overrides}"
     )
-    rows = []
+    rows, sift = [], Sift()
     print("| image | WxH | " + " | ".join(COLUMNS) + " |")
     print("|" + "---|" * (len(COLUMNS) + 2))
     for name, rgb, camera, depth, (t_depth, w_depth) in inputs:
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
         clock = Clock.perf_counter
-        release_extractors()
+        sift.release()
         reset_peak()
         t0 = clock()
-        detect_sift(gray, conf.sift)
+        detect_sift(gray, conf.sift, sift=sift)
         t_cold = clock() - t0
         w0, t0 = time.perf_counter(), clock()
-        plain = detect_sift(gray, conf.sift)
+        plain = detect_sift(gray, conf.sift, sift=sift)
         t_plain, w_plain = clock() - t0, time.perf_counter() - w0
         plain_mb = memory_mb("VmHWM")
 
-        release_extractors()
+        sift.release()
         reset_peak()  # the depth network's peak was in the input generator: not counted
         t0 = clock()
-        extract_image(rgb, camera, depth, conf)
+        extract_image(rgb, camera, depth, conf, sift=sift)
         t_rect_cold = clock() - t0
         w0, t0 = time.perf_counter(), clock()  # again, as plain_sift: warm extractors
-        res = extract_image(rgb, camera, depth, conf)
+        res = extract_image(rgb, camera, depth, conf, sift=sift)
         t_rect, w_rect = clock() - t0, time.perf_counter() - w0
         rect_mb = memory_mb("VmHWM")
 
@@ -312,8 +314,7 @@ def main(argv=None) -> int:
         fmt = [f"{mean[c]:.0f}" if c.endswith("_MB") else f"{mean[c]:.3f}" for c in COLUMNS]
         print(f"| **mean** ({len(rows)}; MB: max) | | " + " | ".join(fmt) + " |")
         print(
-            f"# load average at end: {os.getloadavg()[0]:.2f}; "
-            f"live SIFT extractors: {features.live_extractors()}"
+            f"# load average at end: {os.getloadavg()[0]:.2f}; live SIFT extractors: {sift.live()}"
         )
     return 0
 

@@ -56,6 +56,7 @@ from rectified_colmap.geometry import scaled_size
 from rectified_colmap.pipeline import extract_image
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.asift import asift_features
+from rectified_colmap_research.evaluation.oracle import plane_depth
 from rectified_colmap_research.evaluation.methods import (
     add_variant_argument,
     method_conf,
@@ -105,7 +106,7 @@ def extract_method(
     )
     source = None
     if method == "asift" or args.depth_model == "none":
-        pass  # asift needs no depth; none: plain SIFT, or lines only with vp.depth_free
+        pass  # asift needs no depth; none: plain SIFT
     elif method == "rectsift" or (method in args.variants and base == "rectsift"):
         from rectified_colmap.depth.registry import load_depth_source
         from rectified_colmap.config import DEFAULT_DEPTH_MODEL
@@ -117,7 +118,7 @@ def extract_method(
         for name in names:
             rgb = cv2.cvtColor(cv2.imread(str(root / name)), cv2.COLOR_BGR2RGB)
             cam = cameras[name]
-            depth, nmap = None, None
+            depth = None
             if method == "asift":
                 gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
                 feats = asift_features(gray, conf.sift.max_num_features)
@@ -128,8 +129,8 @@ def extract_method(
                 depth = source(rgb, cam, name)
             elif method == "oracle" or base == "oracle":
                 w, h = scaled_size(cam.width, cam.height, conf.normals.work_max_size)
-                nmap = np.broadcast_to(normals[name], (h, w, 3)).copy()
-            res = extract_image(rgb, cam, depth, conf, np.random.default_rng(0), normals=nmap)
+                depth = plane_depth(cam, normals[name], (h, w))  # the plane's exact depth
+            res = extract_image(rgb, cam, depth, conf, np.random.default_rng(0))
             writer.write(name, res.features, (cam.width, cam.height))
             logger.info(
                 "%s %s: %d keypoints, %d rectified, %d patches",
@@ -152,8 +153,7 @@ def main(argv=None) -> int:
     p.add_argument(
         "--depth_model",
         default=None,
-        help="registry name, .onnx, or none (no depth: plain SIFT, or lines "
-        "only with vp.depth_free)",
+        help="registry name, .onnx, or none (no depth: plain SIFT)",
     )
     p.add_argument("--rect_conf", default=None, help="JSON conf overrides (rectsift, oracle)")
     p.add_argument("--max_num_features", type=int, default=None)

@@ -131,7 +131,7 @@ def main(argv=None) -> int:
         "--rect_conf",
         default=None,
         help="JSON overrides of the extraction conf for rectsift, e.g. "
-        '\'{"rectify": {"keep_plain": false}}\'',
+        '\'{"rectify": {"tilt_steps": 0}}\'',
     )
     add_variant_argument(p, "--rect_conf")
     p.add_argument(

@@ -14,8 +14,8 @@ Depth "network" = GT depth corrupted per image, independently in the two views:
   4x3 uniform noise in [-1, 1], a = ``--field`` (default 0.15: +-15%).
 
 Methods (same SIFT budget): plain SIFT; rectified with GT depth (reference); rectified with
-the corrupted depth; corrupted depth + VP (vp.enabled); VP only (no depth, vp.depth_free,
-line-support regions); VP only with whole-image warps (vp.depth_free_regions = 'whole',
+the corrupted depth; corrupted depth + VP (vp.enabled); VP only (no depth, planes from lines
+alone: research line_planes, line-support regions); VP only with whole-image warps ('whole',
 the paper's VP baseline).
 Per method: dominant-direction error (each direction to the nearest GT axis = world axes
 in the camera frame; depth-free: the Manhattan frame), patch-normal error (median angle
@@ -77,9 +77,10 @@ from rectified_colmap.depth import DepthMap
 from rectified_colmap.eval.matching import FeatureSource
 from rectified_colmap.eval.pairs import Pair
 from rectified_colmap.eval.relpose import evaluate_pair
-from rectified_colmap.features import detect_sift
+from rectified_colmap.sift import detect_sift
 from rectified_colmap.io.hloc_h5 import rootsift_unit
-from rectified_colmap.pipeline import extract_image
+from rectified_colmap.pipeline import ImageResult, extract_image
+from rectified_colmap_research.line_planes import LinePlaneConf, extract_depth_free
 from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("eval_vp")
@@ -246,19 +247,27 @@ def confs(
     base.vp.enabled = False  # the depth rows without "+ VP" and ", no VP" run without it
     vp = ExtractConf.from_dict(base.to_dict())
     vp.vp.enabled = True
-    free = ExtractConf.from_dict(base.to_dict())
-    free.vp.depth_free = True
-    whole = ExtractConf.from_dict(free.to_dict())
-    whole.vp.depth_free_regions = "whole"
     out = {
         "rect GT depth": base,
         "rect corrupted": base,
         "rect corrupted + VP": vp,
-        "VP only": free,
-        WHOLE: whole,
+        "VP only": base,  # planes from lines alone: LINE_ROWS
+        WHOLE: base,
     }
     out.update({row: shipped if vp_on else base for row, (_, vp_on) in (rows or {}).items()})
     return out
+
+
+LINE_ROWS = {"VP only": LinePlaneConf(), WHOLE: LinePlaneConf(regions="whole")}
+"""Rows whose planes come from lines alone (research: line_planes), with their regions."""
+
+
+def extract_row(m: str, image, camera, depth, conf: ExtractConf, rng) -> ImageResult:
+    """Method m's features of one image: the pipeline, or for LINE_ROWS the pipeline on
+    planes from lines alone."""
+    if m in LINE_ROWS:
+        return extract_depth_free(image, camera, conf, LINE_ROWS[m], rng)
+    return extract_image(image, camera, depth, conf, rng)
 
 
 def depth_for(
@@ -299,7 +308,7 @@ def run(args) -> str:
                     res, t_depth = None, 0.0
                 else:
                     depth, t_depth = depth_for(m, r.depth, bad, rows, predicted)
-                    res = extract_image(r.image, camera, depth, cfs[m], np.random.default_rng(i))
+                    res = extract_row(m, r.image, camera, depth, cfs[m], np.random.default_rng(i))
                     f = res.features
                 secs[m].append(time.perf_counter() - ts + t_depth)
                 if res is not None:
@@ -488,12 +497,9 @@ def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
     from rectified_colmap.io.images import read_image
 
     cv2.setNumThreads(1)  # as extract's workers
-    lines, whole = ExtractConf(), ExtractConf()
-    for c in (lines, whole):
-        c.sift.max_num_features = max_num_features
-        c.vp.depth_free = True
-    whole.vp.depth_free_regions = "whole"
-    modes = {"plain SIFT": None, "VP only (line regions)": lines, WHOLE: whole}
+    c = ExtractConf()
+    c.sift.max_num_features = max_num_features
+    modes = {"plain SIFT": None, "VP only (line regions)": "VP only", WHOLE: WHOLE}
     rows = {m: [] for m in modes}  # (seconds, warps, covered %, warped area / image)
     for scene in scenes:
         model, params = scene_camera(scene)
@@ -502,14 +508,14 @@ def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
             camera = make_camera(
                 model, [float(p) for p in params.split(",")], image.shape[1], image.shape[0]
             )
-            for m, c in modes.items():
+            for m, row in modes.items():
                 t = time.perf_counter()
-                if c is None:
+                if row is None:
                     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
                     detect_sift(gray, ExtractConf().sift, max_num_features)
                     rows[m].append((time.perf_counter() - t, 0, 0.0, 0.0))
                     continue
-                res = extract_image(image, camera, None, c)
+                res = extract_depth_free(image, camera, c, LINE_ROWS[row])
                 cov = 0.0 if res.coverage is None else 100 * float((res.coverage >= 0).mean())
                 warped = sum(r.size[0] * r.size[1] for r in res.rectifications)
                 rows[m].append(

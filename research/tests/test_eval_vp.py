@@ -26,7 +26,7 @@ def test_network_row_is_the_default_and_rows_without_vp_run_without_it():
     for conf in cfs.values():  # the budget and the overrides reach every row
         assert conf.sift.max_num_features == 1024
         assert conf.rectify.max_viewing_angle_deg == 86.0
-    assert cfs["VP only"].vp.depth_free and cfs[ev.WHOLE].vp.depth_free_regions == "whole"
+    assert ev.LINE_ROWS["VP only"].regions == "lines" and ev.LINE_ROWS[ev.WHOLE].regions == "whole"
 
 
 def test_combine_bins_by_viewpoint_change(tmp_path):

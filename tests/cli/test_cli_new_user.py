@@ -20,7 +20,7 @@ import pytest
 from rectified_colmap.cli import main, normalize_bool_flags
 from rectified_colmap.config import ExtractConf, SiftConf
 from rectified_colmap.extraction import extract
-from rectified_colmap.features import detect_sift
+from rectified_colmap.sift import detect_sift
 from tests.conftest import look_at, plane_view, textured_image
 
 K = np.array([[400.0, 0, 200], [0, 400, 150], [0, 0, 1]])

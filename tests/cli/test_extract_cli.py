@@ -117,7 +117,7 @@ def test_extract_rectifies_with_depth_and_is_plain_without(scene, tmp_path):
     without = extract(images, hloc_features=tmp_path / "p.h5", **kw)
     assert with_depth.ok and without.ok
     assert with_depth.plain == [] and sorted(without.plain) == names
-    from rectified_colmap.features import detect_sift
+    from rectified_colmap.sift import detect_sift
 
     for name in names:
         plain = detect_sift(cv2.imread(str(images / name), cv2.IMREAD_GRAYSCALE))

@@ -18,7 +18,8 @@ from rectified_colmap.eval.localize import (
     read_poses,
     write_poses,
 )
-from rectified_colmap.features import SiftConf, detect_sift
+from rectified_colmap.config import SiftConf
+from rectified_colmap.sift import detect_sift
 from rectified_colmap.io.hloc_h5 import HlocFeatureWriter
 
 W, H, F = 320, 240, 260.0

@@ -18,7 +18,8 @@ import pycolmap
 import pytest
 
 from rectified_colmap import conventions
-from rectified_colmap.features import Features, detect_sift, similarity_frames
+from rectified_colmap.features import Features, similarity_frames
+from rectified_colmap.sift import detect_sift
 from rectified_colmap.io.colmap_db import PROVENANCE_TABLE, ColmapDatabase, image_ids_to_pair_id
 
 COLMAP = shutil.which("colmap")

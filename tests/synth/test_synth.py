@@ -313,7 +313,7 @@ def test_sift_matches_between_views_are_geometrically_consistent():
     20-40 degrees apart agree with the GT (depth + relative pose) to a few pixels."""
     import cv2
 
-    from rectified_colmap.features import detect_sift
+    from rectified_colmap.sift import detect_sift
 
     cam = synth.pinhole_camera(320, 240, 280)
     rng = np.random.default_rng(14)

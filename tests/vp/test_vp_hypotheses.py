@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap.camera import calibration_matrix, grid_rays, make_camera
+from rectified_colmap.depth import DepthMap
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.geometry import line_angle_deg
 from rectified_colmap.pipeline import extract_image
@@ -142,12 +143,11 @@ def test_pipeline_adds_the_plane_the_depth_missed():
     img, depth = plane_view(facade_texture(), 8.0 / 512, K, R, t, (640, 480))
     camera = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
     base = ExtractConf.from_dict({"vp": {"line_hypotheses": 0}})
-    w, h = 320, 240
-    frontal = np.broadcast_to(np.array([0.0, 0.0, -1.0]), (h, w, 3)).copy()
-    plain = extract_image(img, camera, None, base, normals=frontal)
+    frontal = DepthMap(np.ones((240, 320), np.float32), "depth")  # a plane at z = 1: normal -z
+    plain = extract_image(img, camera, frontal, base)
     assert plain.rectifications == []
     conf = ExtractConf.from_dict({"vp": {"line_hypotheses": 2}})
-    res = extract_image(img, camera, None, conf, normals=frontal)
+    res = extract_image(img, camera, frontal, conf)
     n_true = R @ np.array([0.0, 0.0, 1.0])
     errs = [line_angle_deg(r.normal, n_true) for r in res.rectifications]
     assert errs and min(errs) < 2.0

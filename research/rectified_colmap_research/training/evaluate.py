@@ -37,9 +37,9 @@ measures below, these labels also cover oblique walls without straight lines.
 
 Real photos (``--real SCENE_DIR ...``, COLMAP scenes with ``images/`` and ``sparse/``, e.g.
 Strecha): no true depth, but the Manhattan frame from line segments
-(:func:`rectified_colmap.vp.manhattan_from_image`, consistent across Strecha images to
-~0.3 deg) is an accurate reference for the dominant directions. Per image, over the
-line frame's confident axes: ``dir_err`` = angle (deg) from each axis to the nearest fitted
+(:func:`rectified_colmap_research.line_planes.manhattan_from_image`, consistent across
+Strecha images to ~0.3 deg) is an accurate reference for the dominant directions. Per image,
+over the line frame's confident axes: ``dir_err`` = angle (deg) from each axis to the nearest fitted
 direction (mean), ``agree`` = fraction of the pixels with a normal whose normal is within
 15 deg of a confident axis. Cheap enough to run on every checkpoint.
 """
@@ -220,7 +220,7 @@ def evaluate_real(depth_for, scene_dirs, agree_deg: float = 15.0) -> dict:
     import pycolmap
 
     from rectified_colmap.config import ExtractConf
-    from rectified_colmap.vp.fusion import manhattan_from_image
+    from rectified_colmap_research.line_planes import manhattan_from_image
 
     conf = ExtractConf()
     rows = []

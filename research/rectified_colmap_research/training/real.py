@@ -10,8 +10,8 @@ A real sample has the pool format of :mod:`rectified_colmap_research.training.da
   from two sources: planes fitted to the model's 3D points (:func:`fit_planes`, where the
   image's points of one plane are dense, :func:`plane_normal_map`), and where the
   line-derived Manhattan frame is confident (its trust test,
-  :func:`rectified_colmap.vp.fusion.manhattan_from_image`) and segments of two of its
-  families are dense (:func:`rectified_colmap.vp.line_planes.line_support_patches`: a plane
+  :func:`rectified_colmap_research.line_planes.manhattan_from_image`) and segments of two of its
+  families are dense (:func:`rectified_colmap_research.line_planes.line_support_patches`: a plane
   containing lines of two vanishing points has the third axis as normal); plane fits win
   where both exist, and a pixel where they disagree gets neither
   (:func:`merge_normal_labels`);
@@ -44,8 +44,7 @@ from rectified_colmap.conventions import (
     to_opencv_homography,
     to_opencv_points,
 )
-from rectified_colmap.vp.fusion import manhattan_from_image
-from rectified_colmap.vp.line_planes import line_support_patches
+from rectified_colmap_research.line_planes import line_support_patches, manhattan_from_image
 from .sky import NOT_SKY, SKY, UNKNOWN
 
 
@@ -153,7 +152,7 @@ def line_normal_map(
     H, W = gray.shape
     s = work_max_side / max(H, W)
     gh, gw = max(1, round(H * s)), max(1, round(W * s))
-    patches, labels = line_support_patches(res, camera, (gh, gw), conf)
+    patches, labels = line_support_patches(res, camera, (gh, gw))
     if not patches:
         return normals, res.directions
     table = np.zeros((7, 3), np.float32)  # label 2k + s -> normal facing the camera; -1 -> 0

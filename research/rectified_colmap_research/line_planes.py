@@ -1,29 +1,79 @@
-"""Depth-free planes: plane patches from a line-derived Manhattan frame, beside planes.py.
+"""Depth-free planes: plane patches from a line-derived Manhattan frame (research only).
+
+Moved out of the package with the depth-free mode (issue 42): the training's normal labels
+from lines (training/real.py), the VP-only rows of scripts/eval_vp.py and scripts/bench_vp.py
+use it; the extractor never does.
 
 Input: the grayscale image (H, W) uint8, its camera and the work-grid shape (h, w) (the grid
 of rectified_colmap.planes). Output: a planes.PlaneResult on the work grid, like
 planes.detect_planes gives from depth: directions (3, 3) (the confident frame, or None),
 labels (h, w) int8 (2k + s, -1 = none) and ``Patch``es with work-grid masks and normals
-facing the camera; and the VpResult behind it (vp.fusion).
+facing the camera; and the VpResult behind it (rectified_colmap.vp.fusion).
 
-Used for images without depth (conf.depth_free): the confident frame gives the directions,
-and the patches come from ``line_support_patches`` (conf.depth_free_regions = 'lines': a
-plane with normal F[k] is where segments of both other VPs are dense, see its docstring,
-split by the sign of ray . F[k]) or ``whole_image_patches`` ('whole', the paper's VP
-baseline: per trusted axis, each side of its vanishing line entirely; the patches overlap).
+The confident frame (``manhattan_from_image``) gives the directions, and the patches come
+from ``line_support_patches`` (LinePlaneConf.regions = 'lines': a plane with normal F[k] is
+where segments of both other VPs are dense, see its docstring, split by the sign of
+ray . F[k]) or ``whole_image_patches`` ('whole', the paper's VP baseline: per trusted axis,
+each side of its vanishing line entirely; the patches overlap).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 import pycolmap
 
-from .. import camera as cam_utils
-from ..config import VpConf
-from ..conventions import to_opencv_points
-from ..planes import Patch, PlaneResult
-from .fusion import VpResult, manhattan_from_image
+from rectified_colmap import camera as cam_utils
+from rectified_colmap.config import ExtractConf, VpConf
+from rectified_colmap.conventions import to_opencv_points
+from rectified_colmap.geometry import scaled_size
+from rectified_colmap.pipeline import ImageResult, add_plane_hypotheses, features_on_top, timed
+from rectified_colmap.planes import Patch, PlaneResult
+from rectified_colmap.sift import plain_sift
+from rectified_colmap.views import plan_views
+from rectified_colmap.vp.fusion import VpResult, refine_directions
+
+
+@dataclass
+class LinePlaneConf:
+    """Depth-free planes (were vp.support_radius_frac, vp.support_min_lines,
+    vp.depth_free_regions of the package's conf)."""
+
+    support_radius_frac: float = 0.06  # window half-side (fraction of the grid's side)
+    support_min_lines: float = 0.5  # segment lengths per window for each VP
+    regions: str = "lines"  # "lines" (line_support_patches) or "whole" (whole-image warps)
+
+    def __post_init__(self):
+        if self.regions not in ("lines", "whole"):
+            raise ValueError(f"regions must be 'lines' or 'whole', got {self.regions!r}")
+
+
+def manhattan_from_image(
+    image_gray: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: VpConf = VpConf(),
+    rng: np.random.Generator | None = None,
+) -> VpResult:
+    """The line-derived frame as the dominant directions.
+
+    Args:
+        image_gray, camera, conf, rng: as rectified_colmap.vp.refine_directions.
+    Returns:
+        VpResult whose ``directions`` (3, 3) is the frame (rows by support, like
+        planes.fit_dominant_directions) when at least two of its axes are confident
+        (sigma <= conf.max_sigma_deg), else None; ``snapped`` (3,) marks the confident
+        axes; ``support`` and ``sigma_deg`` (3,) are the frame's.
+    """
+    res = refine_directions(image_gray, camera, None, conf, rng)
+    mf = res.manhattan
+    confident = mf.sigma_deg <= conf.max_sigma_deg
+    res.snapped = confident
+    res.support = mf.support.copy()
+    res.sigma_deg = mf.sigma_deg.copy()
+    res.directions = mf.frame.copy() if mf.frame is not None and confident.sum() >= 2 else None
+    return res
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -39,7 +89,7 @@ def line_support_patches(
     result: VpResult,
     camera: pycolmap.Camera,
     work_shape: tuple[int, int],
-    conf: VpConf = VpConf(),
+    conf: LinePlaneConf = LinePlaneConf(),
     min_area_frac: float = 0.005,
 ) -> tuple[list[Patch], np.ndarray]:
     """Depth-free plane patches from labelled segments -> (patches, labels (h, w) int8).
@@ -98,7 +148,7 @@ def whole_image_patches(
     result: VpResult,
     camera: pycolmap.Camera,
     work_shape: tuple[int, int],
-    conf: VpConf = VpConf(),
+    conf: LinePlaneConf = LinePlaneConf(),
     min_area_frac: float = 0.005,
 ) -> tuple[list[Patch], np.ndarray]:
     """The paper's VP baseline: whole-image warps -> (patches, labels (h, w) int8).
@@ -137,36 +187,61 @@ def depth_free_planes(
     camera: pycolmap.Camera,
     work_shape: tuple[int, int],
     conf: VpConf = VpConf(),
+    line_conf: LinePlaneConf = LinePlaneConf(),
     min_area_frac: float = 0.005,
-    gravity: np.ndarray | None = None,
     rng: np.random.Generator | None = None,
 ) -> tuple[PlaneResult, VpResult]:
-    """Depth-free mode: Manhattan frame from lines (manhattan_from_image) + patches.
+    """Manhattan frame from lines (manhattan_from_image) + patches.
 
-    The patches follow conf.depth_free_regions: 'lines' = line_support_patches (disjoint),
+    The patches follow line_conf.regions: 'lines' = line_support_patches (disjoint),
     'whole' = whole_image_patches (the paper's VP baseline, overlapping).
 
     Args:
         image_gray: (H, W) uint8 matching the camera's size.
         camera: the image's camera.
         work_shape: (h, w) of the work grid.
-        conf: VpConf.
+        conf: VpConf (segments and frame); line_conf: the regions.
         min_area_frac: smallest patch, as a fraction of the grid.
-        gravity, rng: as vp.fusion.refine_directions.
+        rng: as rectified_colmap.vp.refine_directions.
     Returns:
         (planes.PlaneResult on the work grid: directions (3, 3) or None, support (3,) =
         label area fraction per axis, labels (h, w) int8, patches; without a confident
-        frame no patches and directions None, so the pipeline falls back to plain SIFT;
-        the VpResult of manhattan_from_image).
+        frame no patches and directions None; the VpResult of manhattan_from_image).
     """
     regions = {"lines": line_support_patches, "whole": whole_image_patches}
-    if conf.depth_free_regions not in regions:
-        raise ValueError(
-            f"vp.depth_free_regions must be one of {sorted(regions)}, "
-            f"got {conf.depth_free_regions!r}"
-        )
-    res = manhattan_from_image(image_gray, camera, conf, gravity, rng)
-    patches, labels = regions[conf.depth_free_regions](res, camera, work_shape, conf, min_area_frac)
+    res = manhattan_from_image(image_gray, camera, conf, rng)
+    patches, labels = regions[line_conf.regions](res, camera, work_shape, line_conf, min_area_frac)
     areas = np.bincount(labels[labels >= 0] // 2, minlength=3)[:3]
     support = areas / max(1, labels.size)
     return PlaneResult(res.directions, support, labels, patches), res
+
+
+def extract_depth_free(
+    image: np.ndarray,
+    camera: pycolmap.Camera,
+    conf: ExtractConf | None = None,
+    line_conf: LinePlaneConf = LinePlaneConf(),
+    rng: np.random.Generator | None = None,
+) -> ImageResult:
+    """The package's pipeline for an image without depth, planes from lines alone
+    (``depth_free_planes``), then plane hypotheses, views and features as in
+    rectified_colmap.pipeline.extract_image. Without a confident frame and hypotheses:
+    exactly plain SIFT."""
+    conf = conf or ExtractConf()
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    H, W = gray.shape
+    w, h = scaled_size(W, H, conf.normals.work_max_size)
+    t: dict[str, float] = {}
+    with timed(t, "vp"):
+        planes, lines = depth_free_planes(
+            gray, camera, (h, w), conf.vp, line_conf, conf.planes.min_area_frac, rng
+        )
+        if conf.vp.line_hypotheses > 0:
+            planes = add_plane_hypotheses(camera, planes, lines.segments, conf)
+    with timed(t, "homographies"):
+        views = plan_views(gray, camera, planes.patches, (h, w), conf.rectify)
+    with timed(t, "sift_plain"):
+        plain = plain_sift(gray, conf.sift)
+    feats = features_on_top(gray, camera, views, plain, conf, None, t) if views else plain
+    planes = replace(planes, patches=views.patches)
+    return ImageResult(feats, planes, views.rects, views.cover, None, t)

@@ -1,0 +1,57 @@
+"""The feature budget of one image, in one place.
+
+Plain SIFT keeps COLMAP's budget (``sift.max_num_features``: detected points, a point with
+two orientations gives two keypoints) on the whole image, exactly as COLMAP. The rectified
+features come on top: at most ``dedup.extra_frac`` x plain SIFT's keypoint count
+(:func:`keypoint_cap`); the views' SIFT budgets share ``sift.patch_budget_factor`` x that
+room by covered area (:func:`view_budgets`, :func:`split_budget`), so they cost what they may
+add; what survives the near-duplicate and crowding tests is cut to the room, smallest major
+scales first (:func:`largest_scales`, as COLMAP's own budget keeps the largest scales).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import ExtractConf
+from .features import Features
+from .geometry import singular_values_2x2
+
+
+def keypoint_cap(plain_count: int, extra_frac: float) -> int:
+    """How many keypoints an image may output where plain SIFT keeps ``plain_count``:
+    ``plain_count`` x (1 + ``extra_frac``)."""
+    return round(plain_count * (1 + extra_frac))
+
+
+def view_budgets(plain_count: int, areas: np.ndarray, conf: ExtractConf) -> np.ndarray:
+    """(n,) SIFT budgets of n rectified views covering ``areas`` (n,) work cells each, on an
+    image where plain SIFT keeps ``plain_count`` keypoints: ``conf.sift.patch_budget_factor``
+    x the room above plain SIFT (``keypoint_cap``), shared by area (``split_budget``)."""
+    room = keypoint_cap(plain_count, conf.dedup.extra_frac) - plain_count
+    return split_budget(round(conf.sift.patch_budget_factor * room), areas)
+
+
+def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray:
+    """Share a feature budget between regions in proportion to their areas (int array).
+
+    Regions with any area get at least ``minimum`` (when the budget allows)."""
+    areas = np.asarray(areas, dtype=np.float64)
+    if areas.sum() <= 0:
+        return np.zeros(len(areas), dtype=int)
+    share = total * areas / areas.sum()
+    share = np.where(areas > 0, np.maximum(share, min(minimum, total / max(len(areas), 1))), 0)
+    share *= total / share.sum()
+    return np.floor(share).astype(int)
+
+
+def largest_scales(feats: Features, index: np.ndarray, n: int) -> np.ndarray:
+    """The ``n`` of ``feats[index]`` with the largest major scales, in index order; all of
+    them when there are at most n. Major scale: the larger singular value of A, a rectified
+    feature's scale in its view along the direction the warp did not stretch (|det A|,
+    ~ cos of the tilt, would penalise the most oblique views)."""
+    if len(index) <= n:
+        return index
+    key = singular_values_2x2(feats.shapes[index])[:, 0]
+    order = np.argsort(-key, kind="stable")[:n]
+    return np.sort(index[order])

@@ -1,0 +1,229 @@
+"""The views of one image: which plane patches get rectified views, and within what budget.
+
+Input: the grayscale image (H, W) uint8, its camera and the planes' ``Patch``es (work-grid
+masks, normals facing the camera; rectified_colmap.planes, plane hypotheses from
+rectified_colmap.vp.hypotheses). Output: a :class:`ViewSet`: the patches (tilt neighbours
+appended), their ``Rectification``s (rectified_colmap.rectify) within the image's pixel
+budget, the work-grid cells each view covers and the first view covering each cell.
+
+- ``patches_worth_rectifying``: near-frontal and textureless patches are left to plain SIFT;
+- ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
+  hypotheses' views (orientations from lines err most);
+- ``rectifications_within_area``: every view planned, then scaled down together to the
+  image's budget;
+- ``viewing_masks`` / ``viewing_coverage``: the cells each view covers.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import pycolmap
+
+from . import camera as cam_utils
+from .config import RectifyConf
+from .geometry import axis_angle_rotation
+from .planes import HYPOTHESIS_AXIS, Patch
+from .rectify import Rectification, finish_rectification, patch_view, view_camera
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class ViewSet:
+    """The rectified views of one image (``plan_views``)."""
+
+    patches: list[Patch]
+    """The image's patches, tilt neighbours appended (``Rectification.patch_index``
+    indexes this list)."""
+    rects: list[Rectification]
+    masks: np.ndarray
+    """(n, h, w) bool: the work-grid cells each view covers (``viewing_masks``)."""
+    cover: np.ndarray
+    """(h, w) int16: the first view covering each cell, -1 for none."""
+
+    def __bool__(self) -> bool:
+        """Whether any view covers any cell (else the image gets plain SIFT alone)."""
+        return bool(self.rects) and bool((self.cover >= 0).any())
+
+
+def plan_views(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    patches: list[Patch],
+    shape: tuple[int, int],
+    conf: RectifyConf,
+) -> ViewSet:
+    """The views of an image with these plane patches on its (h, w) work grid ``shape``
+    (the module docstring's steps)."""
+    todo = patches_worth_rectifying(gray, camera, patches, conf)
+    patches, todo = with_tilt_neighbours(camera, patches, todo, conf)
+    rects = rectifications_within_area(camera, patches, todo, conf)
+    masks = viewing_masks(camera, rects, patches, shape, conf.max_viewing_angle_deg)
+    return ViewSet(patches, rects, masks, viewing_coverage(masks))
+
+
+def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
+    """(n,) median viewing angle of each patch in degrees: the angle between a cell's ray
+    and the patch normal (0: seen frontally there)."""
+    if not patches:
+        return np.zeros(0)
+    h, w = patches[0].mask.shape
+    rays = cam_utils.unit_grid_rays(camera, w, h)
+    # every patch's cosines on the whole grid in one product, (h, w, n)
+    cos = np.clip(-(rays @ np.stack([p.normal for p in patches], 1)), -1.0, 1.0)
+    angle = np.zeros(len(patches))
+    for i, p in enumerate(patches):
+        c = cos[..., i][p.mask]
+        angle[i] = np.degrees(np.arccos(np.median(c))) if c.size else 0.0
+    return angle
+
+
+def patch_evidence(
+    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per patch: (median viewing angle in degrees (``viewing_angles``), median texture),
+    each (n,).
+
+    Texture is the Sobel gradient magnitude of the image resampled to the work grid
+    (INTER_AREA; 8 x grey levels per work cell; sky and blank walls are under ~5, Strecha
+    facades ~40, cobblestones ~15)."""
+    if not patches:
+        return np.zeros(0), np.zeros(0)
+    h, w = patches[0].mask.shape
+    g = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
+    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
+    texture = np.array([np.median(mag[p.mask]) if p.mask.any() else 0.0 for p in patches])
+    return viewing_angles(camera, patches), texture
+
+
+def tilt_neighbours(
+    camera: pycolmap.Camera, patch: Patch, factor: float, steps: int
+) -> list[Patch]:
+    """Patches with ``patch``'s mask whose normals are tilted so that the patch's tilt
+    t = 1 / cos(viewing angle) becomes t * factor**k, k = +-1..+-steps (rotations about
+    n x v, v the patch's mean viewing ray; tilts under 1 or beyond 89 degrees are skipped).
+
+    At strong obliquity the rectification is steep in the orientation: at 70 degrees a
+    5-degree error leaves a residual tilt of 1.3, at 80 degrees one of 1.7, beyond what
+    SIFT absorbs, and the network and vanishing points err by more than that. ASIFT samples
+    tilts factor-spaced (sqrt 2) for the same reason. Both directions count on real photos
+    (evd-dev, docs/evaluation.md "One default"): a plane rectified too little stays
+    foreshortened; one rectified too much is stretched, which hurts less on a single view
+    (synthetic: 40 vs 177 GT-consistent matches for 6 degrees either way at 75) but
+    guessed focal lengths and vanishing points overstate tilts too."""
+    h, w = patch.mask.shape
+    rays = cam_utils.grid_rays(camera, w, h)[patch.mask]
+    v = rays.sum(0)
+    v /= np.linalg.norm(v)
+    n = np.asarray(patch.normal, float) / np.linalg.norm(patch.normal)
+    cos0 = float(np.clip(-(n @ v), 1e-6, 1.0))
+    axis = np.cross(n, v)
+    if np.linalg.norm(axis) < 1e-9:
+        return []
+    axis /= np.linalg.norm(axis)
+    out = []
+    for k in [k for k in range(-steps, steps + 1) if k != 0]:
+        cos_k = cos0 / factor**k
+        if not np.cos(np.deg2rad(89.0)) <= cos_k <= 1.0:
+            continue
+        delta = np.arccos(cos_k) - np.arccos(cos0)  # > 0: more tilt
+        # rotating n about n x v by +delta moves it away from -v (more tilt)
+        normal = axis_angle_rotation(axis, delta) @ n
+        out.append(Patch(patch.mask, patch.axis, normal, patch.area_frac))
+    return out
+
+
+def with_tilt_neighbours(
+    camera: pycolmap.Camera, patches: list[Patch], todo: list[int], conf: RectifyConf
+) -> tuple[list[Patch], list[int]]:
+    """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
+    of the plane hypotheses in ``todo`` (HYPOTHESIS_AXIS: planes from pairs of vanishing
+    points, rectified_colmap.vp.hypotheses, whose orientations err most) seen at
+    conf.tilt_bank_min_angle_deg or more (appended after all of ``patches``, each a patch of
+    its own), and ``todo`` with their indices added."""
+    if conf.tilt_steps <= 0 or not todo:
+        return patches, todo
+    angle = viewing_angles(camera, [patches[i] for i in todo])
+    patches, todo = list(patches), list(todo)
+    for i, a in zip(list(todo), angle):
+        if a < conf.tilt_bank_min_angle_deg or patches[i].axis != HYPOTHESIS_AXIS:
+            continue
+        for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
+            todo.append(len(patches))
+            patches.append(p)
+    return patches, todo
+
+
+def patches_worth_rectifying(
+    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch], conf: RectifyConf
+) -> list[int]:
+    """Indices of the patches to rectify. Left to plain SIFT (at full budget: the pipeline
+    fills from plain SIFT) are patches seen nearly frontally (median viewing angle under
+    conf.min_rectify_angle_deg: the warp would change little) and patches without texture
+    (median gradient under conf.min_texture: sky, blank walls)."""
+    angle, texture = patch_evidence(gray, camera, patches)
+    keep = (angle >= conf.min_rectify_angle_deg) & (texture >= conf.min_texture)
+    if len(patches):
+        logger.debug(
+            "patches: viewing angle %s, texture %s -> rectify %s",
+            np.round(angle),
+            np.round(texture),
+            keep.astype(int),
+        )
+    return [int(i) for i in np.flatnonzero(keep)]
+
+
+def rectifications_within_area(
+    camera: pycolmap.Camera, patches: list[Patch], indices: list[int], conf: RectifyConf
+) -> list[Rectification]:
+    """Rectifications (plan_rectification) of the given patches, scaled down together when
+    their summed size exceeds ``conf.max_total_area_factor`` x the image area x the
+    patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
+    to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
+    patches of their size would get), or ``conf.max_total_pixels``. Each patch's view is
+    computed once, and its mask only at the final scale."""
+    views = [(i, patch_view(camera, patches[i], conf)) for i in indices]
+    views = [(i, v) for i, v in views if v is not None]
+    sizes = [view_camera(v, conf, 1.0)[1] for _, v in views]
+    total = sum(w * h for w, h in sizes)
+    masks = [patches[i].mask for i in indices]
+    overlap = 1.0
+    if masks:
+        overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
+    budget = conf.max_total_area_factor * camera.width * camera.height * overlap
+    budget = min(budget, conf.max_total_pixels)
+    scale = float(np.sqrt(budget / total)) if total > budget else 1.0
+    rects = (finish_rectification(camera, v, i, conf, scale) for i, v in views)
+    return [r for r in rects if r is not None]
+
+
+def viewing_masks(
+    camera: pycolmap.Camera,
+    rects: list[Rectification],
+    patches: list[Patch],
+    shape: tuple[int, int],
+    max_viewing_angle_deg: float,
+) -> np.ndarray:
+    """(n, h, w) bool: the work-grid cells each rectification covers: cells of its patch
+    whose viewing angle is within the limit (cells beyond it are left to plain SIFT).
+    Patches may overlap (depth-free whole-image warps): a cell can be in several masks."""
+    h, w = shape
+    rays = cam_utils.unit_grid_rays(camera, w, h)
+    cos_max = np.cos(np.deg2rad(max_viewing_angle_deg))
+    out = np.zeros((len(rects), h, w), bool)
+    for i, rect in enumerate(rects):
+        out[i] = patches[rect.patch_index].mask & (-(rays @ rect.normal) >= cos_max)
+    return out
+
+
+def viewing_coverage(masks: np.ndarray) -> np.ndarray:
+    """(n, h, w) bool viewing_masks -> (h, w) int16: the first rectification covering
+    each cell (-1: none)."""
+    cover = np.full(masks.shape[1:], -1, np.int16)
+    for i in range(len(masks) - 1, -1, -1):
+        cover[masks[i]] = i
+    return cover
