@@ -1,5 +1,7 @@
-"""`rectified-colmap models list|download NAME|info NAME_OR_PATH|export`: the depth-model
-registry, and the exporter of a PyTorch network to a contract ONNX file."""
+"""`rectified-colmap models list|download NAME|info NAME_OR_PATH`: the depth-model registry.
+
+(Exporting a PyTorch network to a contract ONNX file is research/scripts/export_depth_model.py:
+it needs torch, which the extractor never does.)"""
 
 from __future__ import annotations
 
@@ -26,32 +28,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--no_progress", action="store_true")
     i = msub.add_parser("info", help="contract (preprocessing, output) of a model or file")
     i.add_argument("name_or_path")
-    e = msub.add_parser(
-        "export",
-        help="export a PyTorch depth network to ONNX with the contract (needs torch)",
-        description="Export a PyTorch depth network to an ONNX file with the rectified_colmap "
-        "contract metadata (opset 17, dynamic size unless --fixed), checked against PyTorch "
-        "with onnxruntime. Needs PyTorch: pip install 'rectified-colmap[export]'. The contract "
-        "keys are in docs/depth-models.md.",
-    )
-    e.add_argument(
-        "--factory", required=True, help="'package.module:callable' building the nn.Module"
-    )
-    e.add_argument("--factory_kwargs", default="{}", help="JSON kwargs for the factory")
-    e.add_argument("--weights", type=Path, help="state_dict (.pt) to load")
-    e.add_argument("--spec", type=Path, help="JSON of contract keys (without prefix)")
-    e.add_argument("--output", type=Path, required=True, help="the .onnx file to write")
-    e.add_argument("--height", type=int, default=256, help="example input height")
-    e.add_argument("--width", type=int, default=320, help="example input width")
-    e.add_argument("--fixed", action="store_true", help="fixed input size (default: dynamic)")
-    e.add_argument("--fp16", action="store_true", help="fp16 weights, float32 inputs/outputs")
-    e.add_argument(
-        "--fp16_storage",
-        action="store_true",
-        help="fp16 weights in the file, float32 arithmetic (half the size)",
-    )
-    e.add_argument("--no_verify", action="store_true", help="skip the onnxruntime check")
-    e.add_argument("--overwrite", action="store_true", help="replace --output if it exists already")
     p.set_defaults(func=run)
 
 
@@ -89,39 +65,10 @@ def _info(name_or_path: str) -> int:
     return 0
 
 
-def _export(args: argparse.Namespace) -> int:
-    from ..depth.export import export_from_factory
-
-    if args.output.exists() and not args.overwrite:
-        logger.error("%s: exists already (pass --overwrite to replace it)", args.output)
-        return 1
-    try:
-        kwargs = json.loads(args.factory_kwargs)
-    except json.JSONDecodeError as e:
-        logger.error("--factory_kwargs: not JSON (%s)", e)
-        return 1
-    export_from_factory(
-        args.factory,
-        args.output,
-        factory_kwargs=kwargs,
-        weights=args.weights,
-        spec=args.spec,
-        height=args.height,
-        width=args.width,
-        dynamic=not args.fixed,
-        fp16=args.fp16,
-        fp16_storage=args.fp16_storage,
-        verify=not args.no_verify,
-    )
-    return 0
-
-
 def run(args: argparse.Namespace) -> int:
     from ..depth import registry
 
     try:
-        if args.models_command == "export":
-            return _export(args)
         if args.models_command == "list":
             return _list()
         if args.models_command == "download":

@@ -1,7 +1,7 @@
 """Export a trained DepthNet to ONNX with the rectified_colmap contract metadata.
 
-Through the package's exporter (rectified_colmap.depth.export: opset 17, dynamic H/W,
-optional fp16, onnxruntime verification).
+Through the research exporter (rectified_colmap_research.onnx_export: opset 17, dynamic
+H/W, optional fp16, onnxruntime verification).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import logging
 from pathlib import Path
 
 from rectified_colmap.depth.contract import ModelSpec
-from rectified_colmap.depth.export import export_depth_onnx
+from rectified_colmap_research.onnx_export import export_depth_onnx
 from .model import INPUT_MEAN, INPUT_SCALE, INPUT_STD
 
 logger = logging.getLogger(__name__)

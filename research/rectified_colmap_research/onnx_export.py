@@ -7,15 +7,15 @@ fixed size), the ``rectified_colmap.*`` metadata of the given ModelSpec, optiona
 file, cast to float32 when the session loads, so half the size and float32 arithmetic), and
 is checked against PyTorch with onnxruntime.
 
-Torch is imported only when a function here runs (``pip install 'rectified-colmap[export]'``);
-the runtime never needs it. From Python::
+Research only (torch and onnx: ``pip install -e 'research/[train]'``); the extractor reads
+the files it writes and never needs torch. From Python::
 
-    from rectified_colmap.depth.export import export_depth_onnx
+    from rectified_colmap_research.onnx_export import export_depth_onnx
     export_depth_onnx(net, "model.onnx", ModelSpec(...), height=256, width=320)
 
 From the command line (a factory "package.module:callable" building the network)::
 
-    rectified-colmap models export --factory mypackage.model:DepthNet \
+    python research/scripts/export_depth_model.py --factory mypackage.model:DepthNet \
         --weights ckpt.pt --spec spec.json --output model.onnx
 """
 
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .contract import ModelSpec, attach_metadata
+from rectified_colmap.depth.contract import ModelSpec, attach_metadata
 
 logger = logging.getLogger(__name__)
 OPSET = 17
@@ -222,7 +222,7 @@ def import_torch():
         import torch
     except ImportError:
         raise ImportError(
-            "exporting a network needs PyTorch: pip install 'rectified-colmap[export]'"
+            "exporting a network needs PyTorch: pip install -e 'research/[train]'"
         ) from None
     return torch
 
