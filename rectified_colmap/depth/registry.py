@@ -224,8 +224,19 @@ def download(name: str, force: bool = False, progress: bool = True, timeout: flo
             f"cannot create the model cache {dest.parent} ({e}); set "
             f"RECTIFIED_COLMAP_CACHE to a writable folder"
         ) from None
-    sha = expected_sha256(entry)
     logger.info("downloading %s (%s) from %s to %s", name, entry.licence, entry.url, dest)
+    digest, n = _fetch_verified(entry, dest, timeout, progress)
+    logger.info("saved %s (%d bytes, sha256 %s)", dest, n, digest)
+    return dest
+
+
+def _fetch_verified(
+    entry: ModelEntry, dest: Path, timeout: float, progress: bool
+) -> tuple[str, int]:
+    """Stream ``entry.url`` into a temporary file beside ``dest``, check its size and
+    sha256, move it onto ``dest`` -> (sha256 hex, bytes); ModelDownloadError saying what to
+    do otherwise, the temporary file removed either way."""
+    name, sha = entry.name, expected_sha256(entry)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{entry.filename}.", suffix=".part", dir=dest.parent)
     tmp = Path(tmp_name)
     try:
@@ -267,8 +278,7 @@ def download(name: str, force: bool = False, progress: bool = True, timeout: flo
     finally:
         if tmp.exists():
             tmp.unlink()
-    logger.info("saved %s (%d bytes, sha256 %s)", dest, n, digest)
-    return dest
+    return digest, n
 
 
 def _stream(url: str, fd: int, timeout: float, progress: bool, label: str) -> tuple[str, int]:

@@ -157,31 +157,12 @@ def read_homography_pairs(
         if conv == "opencv":
             H = colmap_homography_from_opencv(H)
         H = positive_homography(H, it.get("size0"))
-        sizes = []
-        for key, im in (("size0", im0), ("size1", im1)):
-            if key in it:
-                sizes.append((int(it[key][0]), int(it[key][1])))
-            elif image_root is not None:
-                img = cv2.imread(str(Path(image_root) / im), cv2.IMREAD_UNCHANGED)
-                if img is None:
-                    raise ValueError(f"{path}: pair {k}: cannot read {im} under {image_root}")
-                sizes.append((img.shape[1], img.shape[0]))
-            else:
-                raise ValueError(f"{path}: pair {k}: no {key} and no image_root to read it")
         where = f"{path}: pair {k}"
-        region0 = region1 = None
-        if "region0" in it:
-            region0 = _read_region(it["region0"], None, conv, where)
-        if "region1" in it:
-            region1 = _read_region(it["region1"], None, conv, where)
-        if region0 is not None and region1 is None:
-            region1 = [apply_homography(H, p) for p in region0]
-            if not all(np.isfinite(p).all() for p in region1):
-                raise ValueError(f"{where}: region0 maps behind camera 1; give region1")
-        elif region1 is not None and region0 is None:
-            region0 = [apply_homography(np.linalg.inv(H), p) for p in region1]
-            if not all(np.isfinite(p).all() for p in region0):
-                raise ValueError(f"{where}: region1 maps behind camera 0; give region0")
+        sizes = [
+            _pair_size(it, key, im, image_root, where)
+            for key, im in (("size0", im0), ("size1", im1))
+        ]
+        region0, region1 = _pair_regions(it, H, conv, where)
         known = {"pair", "im0", "im1", "H", "size0", "size1", "convention", "region0", "region1"}
         out.append(
             HomographyPair(
@@ -197,6 +178,38 @@ def read_homography_pairs(
             )
         )
     return out
+
+
+def _pair_size(item: dict, key: str, name: str, image_root, where: str) -> tuple[int, int]:
+    """(W, H) of a pair file's image: its ``size0``/``size1`` entry, else read from the
+    image under ``image_root``."""
+    if key in item:
+        return int(item[key][0]), int(item[key][1])
+    if image_root is None:
+        raise ValueError(f"{where}: no {key} and no image_root to read it")
+    img = cv2.imread(str(Path(image_root) / name), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{where}: cannot read {name} under {image_root}")
+    return img.shape[1], img.shape[0]
+
+
+def _pair_regions(item: dict, H: np.ndarray, conv: str, where: str):
+    """(region0, region1) of a pair file's entry: each as given, the missing one mapped
+    from the other through H (None, None without a region)."""
+    region0 = region1 = None
+    if "region0" in item:
+        region0 = _read_region(item["region0"], None, conv, where)
+    if "region1" in item:
+        region1 = _read_region(item["region1"], None, conv, where)
+    if region0 is not None and region1 is None:
+        region1 = [apply_homography(H, p) for p in region0]
+        if not all(np.isfinite(p).all() for p in region1):
+            raise ValueError(f"{where}: region0 maps behind camera 1; give region1")
+    elif region1 is not None and region0 is None:
+        region0 = [apply_homography(np.linalg.inv(H), p) for p in region1]
+        if not all(np.isfinite(p).all() for p in region0):
+            raise ValueError(f"{where}: region1 maps behind camera 0; give region0")
+    return region0, region1
 
 
 def positive_homography(H: np.ndarray, size0=None) -> np.ndarray:

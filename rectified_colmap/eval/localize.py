@@ -84,55 +84,14 @@ def build_reference(
         )
     db_path = work_dir / "reference.db"
     db_path.unlink(missing_ok=True)
-    rec = pycolmap.Reconstruction()
-    ids = {}
     feats = {n: features[n] for n in names}
+    if pairs is None:
+        pairs = [(a, b) for k, a in enumerate(names) for b in names[k + 1 :]]
     with pycolmap.Database.open(db_path) as db:
-        for i, name in enumerate(names, 1):
-            cam = pycolmap.Camera(
-                model=cameras[name].model,
-                width=cameras[name].width,
-                height=cameras[name].height,
-                params=cameras[name].params,
-            )
-            cam.camera_id = i
-            cam.has_prior_focal_length = True
-            rec.add_camera_with_trivial_rig(cam)
-            db.write_camera(cam, use_camera_id=True)
-            db.write_rig(rec.rig(i), use_rig_id=True)
-            im = pycolmap.Image(name=name, camera_id=i, image_id=i)
-            rec.add_image_with_trivial_frame(im, poses[name])
-            db.write_image(pycolmap.Image(name=name, camera_id=i, image_id=i), use_image_id=True)
-            frame = pycolmap.Frame()
-            frame.frame_id = i
-            frame.rig_id = i
-            frame.add_data_id(rec.image(i).data_id)
-            db.write_frame(frame, use_frame_id=True)
-            db.write_keypoints(i, feats[name]["keypoints"].astype(np.float32))
-            ids[name] = i
-        if pairs is None:
-            pairs = [(a, b) for k, a in enumerate(names) for b in names[k + 1 :]]
-        n_verified = 0
-        for a, b in pairs:
-            m = match_ratio(
-                feats[a]["descriptors"], feats[b]["descriptors"], conf.ratio, conf.mutual
-            )
-            if len(m) == 0:
-                continue
-            ca, cb = cameras[a], cameras[b]
-            F = _fundamental(ca, poses[a], cb, poses[b])
-            err = sampson_error(
-                F,
-                _undistorted_px(ca, feats[a]["keypoints"][m[:, 0]]),
-                _undistorted_px(cb, feats[b]["keypoints"][m[:, 1]]),
-            )
-            inl = m[err < conf.verify_max_error].astype(np.uint32)
-            db.write_matches(ids[a], ids[b], m.astype(np.uint32))
-            geom = pycolmap.TwoViewGeometry()
-            geom.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
-            geom.inlier_matches = inl
-            db.write_two_view_geometry(ids[a], ids[b], geom)
-            n_verified += len(inl)
+        rec, ids = _posed_images(db, names, cameras, poses, feats)
+        n_verified = sum(
+            _verified_matches(db, ids, a, b, cameras, poses, feats, conf) for a, b in pairs
+        )
     logger.info(
         "reference: %d images, %d pairs, %d verified matches", len(names), len(pairs), n_verified
     )
@@ -149,6 +108,57 @@ def build_reference(
         out.compute_mean_track_length() if out.num_points3D() else 0.0,
     )
     return out
+
+
+def _posed_images(db, names, cameras, poses, feats) -> tuple[pycolmap.Reconstruction, dict]:
+    """Every image into the database (camera with a prior focal length, trivial rig and
+    frame, keypoints) and into a Reconstruction at its known pose -> (it, name -> id)."""
+    rec, ids = pycolmap.Reconstruction(), {}
+    for i, name in enumerate(names, 1):
+        cam = pycolmap.Camera(
+            model=cameras[name].model,
+            width=cameras[name].width,
+            height=cameras[name].height,
+            params=cameras[name].params,
+        )
+        cam.camera_id = i
+        cam.has_prior_focal_length = True
+        rec.add_camera_with_trivial_rig(cam)
+        db.write_camera(cam, use_camera_id=True)
+        db.write_rig(rec.rig(i), use_rig_id=True)
+        im = pycolmap.Image(name=name, camera_id=i, image_id=i)
+        rec.add_image_with_trivial_frame(im, poses[name])
+        db.write_image(pycolmap.Image(name=name, camera_id=i, image_id=i), use_image_id=True)
+        frame = pycolmap.Frame()
+        frame.frame_id = i
+        frame.rig_id = i
+        frame.add_data_id(rec.image(i).data_id)
+        db.write_frame(frame, use_frame_id=True)
+        db.write_keypoints(i, feats[name]["keypoints"].astype(np.float32))
+        ids[name] = i
+    return rec, ids
+
+
+def _verified_matches(db, ids, a, b, cameras, poses, feats, conf: LocalizeConf) -> int:
+    """Ratio-test matches of images a and b, verified against the epipolar geometry of
+    their known poses (Sampson error), into the database; returns the verified count."""
+    m = match_ratio(feats[a]["descriptors"], feats[b]["descriptors"], conf.ratio, conf.mutual)
+    if len(m) == 0:
+        return 0
+    ca, cb = cameras[a], cameras[b]
+    F = _fundamental(ca, poses[a], cb, poses[b])
+    err = sampson_error(
+        F,
+        _undistorted_px(ca, feats[a]["keypoints"][m[:, 0]]),
+        _undistorted_px(cb, feats[b]["keypoints"][m[:, 1]]),
+    )
+    inl = m[err < conf.verify_max_error].astype(np.uint32)
+    db.write_matches(ids[a], ids[b], m.astype(np.uint32))
+    geom = pycolmap.TwoViewGeometry()
+    geom.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+    geom.inlier_matches = inl
+    db.write_two_view_geometry(ids[a], ids[b], geom)
+    return len(inl)
 
 
 @dataclass

@@ -171,6 +171,34 @@ def pairs_from_model(
 # -- Strong Viewpoint Changes (Toft et al. ECCV 2020), best effort -------------------------
 
 
+def _scene_pairs(scene: Path) -> tuple[list[Pair], dict[tuple[str, str], str]] | None:
+    """One scene folder's pairs and their categories from pairs.txt ({} without it), or None
+    when the folder has neither pairs_with_gt.txt nor a COLMAP model."""
+    import pycolmap
+
+    if (scene / "pairs_with_gt.txt").is_file():
+        return read_pairs_with_gt(scene / "pairs_with_gt.txt"), {}
+    model = next(
+        (
+            scene / d
+            for d in ("sparse", "model")
+            if (scene / d / "images.bin").is_file() or (scene / d / "images.txt").is_file()
+        ),
+        None,
+    )
+    if model is None:
+        return None
+    pairs = pairs_from_model(pycolmap.Reconstruction(str(model)))
+    cats: dict[tuple[str, str], str] = {}
+    if (scene / "pairs.txt").is_file():
+        for line in (scene / "pairs.txt").read_text().splitlines():
+            parts = line.split()
+            if len(parts) >= 2:
+                cats[(parts[0], parts[1])] = parts[2] if len(parts) > 2 else ""
+        pairs = [p for p in pairs if (p.name0, p.name1) in cats]
+    return pairs, cats
+
+
 def read_strong_viewpoint_changes(root: Path | str) -> list[Pair]:
     """Best-effort reader of the Strong Viewpoint Changes dataset (Toft et al., ECCV 2020).
 
@@ -188,38 +216,16 @@ def read_strong_viewpoint_changes(root: Path | str) -> list[Pair]:
     else the 10-degree bin of the ground-truth rotation (``"20-30"``), which is how the
     paper defines the 18 difficulty categories.
     """
-    import pycolmap
-
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: dataset folder not found")
-    scenes = sorted(p for p in root.iterdir() if p.is_dir())
     out: list[Pair] = []
-    for scene in scenes:
-        pairs: list[Pair]
-        cats: dict[tuple[str, str], str] = {}
-        if (scene / "pairs_with_gt.txt").is_file():
-            pairs = read_pairs_with_gt(scene / "pairs_with_gt.txt")
-        else:
-            model = next(
-                (
-                    scene / d
-                    for d in ("sparse", "model")
-                    if (scene / d / "images.bin").is_file() or (scene / d / "images.txt").is_file()
-                ),
-                None,
-            )
-            if model is None:
-                logger.warning("%s: neither pairs_with_gt.txt nor a COLMAP model; skipped", scene)
-                continue
-            rec = pycolmap.Reconstruction(str(model))
-            pairs = pairs_from_model(rec)
-            if (scene / "pairs.txt").is_file():
-                for line in (scene / "pairs.txt").read_text().splitlines():
-                    parts = line.split()
-                    if len(parts) >= 2:
-                        cats[(parts[0], parts[1])] = parts[2] if len(parts) > 2 else ""
-                pairs = [p for p in pairs if (p.name0, p.name1) in cats]
+    for scene in sorted(p for p in root.iterdir() if p.is_dir()):
+        found = _scene_pairs(scene)
+        if found is None:
+            logger.warning("%s: neither pairs_with_gt.txt nor a COLMAP model; skipped", scene)
+            continue
+        pairs, cats = found
         for p in pairs:
             cat = cats.get((p.name0, p.name1)) or None
             if cat is None:

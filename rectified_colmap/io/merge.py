@@ -81,24 +81,9 @@ def merge_databases(
                     f"{src.path}: holds {n_matches} match and {n_geoms} two-view "
                     "geometry rows; merge shard outputs before matching them"
                 )
-        # name -> (input, image_id, camera_id); conflicts: name -> paths
-        entries: dict[str, tuple[ColmapDatabase, int, int]] = {}
-        conflicts: dict[str, list[str]] = {}
-        for src in srcs:
-            with_features = src.image_ids_with_features()
-            for image_id, name in sorted(src.image_names().items()):
-                if image_id not in with_features:
-                    summary.without_features.append(name)
-                    continue
-                if name in entries:
-                    other, other_id, _ = entries[name]
-                    if not _same_db_features(src, image_id, other, other_id):
-                        conflicts.setdefault(name, [str(other.path)]).append(str(src.path))
-                    continue
-                entries[name] = (src, image_id, src.find_image(name)[1])
-        if conflicts:  # before the target is even created
-            raise _conflict_error(conflicts)
+        entries = _database_entries(srcs, summary)  # conflicts raise before target exists
         out = stack.enter_context(ColmapDatabase(target))
+        conflicts: dict[str, list[str]] = {}
         for name, (src, image_id, _) in entries.items():
             found = out.find_image(name)
             if found is not None and out.has_features(found[0]):
@@ -108,39 +93,69 @@ def merge_databases(
                     conflicts.setdefault(name, [str(src.path)]).append(str(out.path))
         if conflicts:
             raise _conflict_error(conflicts)
-
-        by_source: dict[tuple[int, int], int] = {}  # (input, camera_id) -> target camera
-        by_value: dict[tuple, int] = {}  # identical cameras -> target camera (single_camera)
         already = set(summary.already)
-        for name in sorted(entries):
-            if name in already:
-                continue
-            src, image_id, cam_id = entries[name]
-            camera = src.get_camera(cam_id)
-            value = (
-                int(camera.model.value),
-                camera.width,
-                camera.height,
-                np.asarray(camera.params, np.float64).tobytes(),
-                camera.has_prior_focal_length,
-            )
-            target_cam = by_source.get((id(src), cam_id))
-            if target_cam is None and single_camera:
-                target_cam = by_value.get(value)
-            extractor = EXTRACTOR_NAME if image_id in src.ours() else None
-            _, target_cam, _ = out.write_image(
-                name,
-                src.read_features(image_id),
-                camera,
-                camera.has_prior_focal_length,
-                target_cam,
-                extractor=extractor,
-            )
-            by_source[(id(src), cam_id)] = target_cam
-            if single_camera:
-                by_value.setdefault(value, target_cam)
-            summary.added.append(name)
+        todo = {n: e for n, e in entries.items() if n not in already}
+        summary.added += _copy_images(out, todo, single_camera)
     return summary
+
+
+def _database_entries(srcs: list[ColmapDatabase], summary: MergeSummary) -> dict:
+    """name -> (input, image_id, camera_id) of the images with features (the first input
+    holding a name; images without features listed in ``summary``); the same name with
+    different features in two inputs raises."""
+    entries: dict[str, tuple[ColmapDatabase, int, int]] = {}
+    conflicts: dict[str, list[str]] = {}
+    for src in srcs:
+        with_features = src.image_ids_with_features()
+        for image_id, name in sorted(src.image_names().items()):
+            if image_id not in with_features:
+                summary.without_features.append(name)
+                continue
+            if name in entries:
+                other, other_id, _ = entries[name]
+                if not _same_db_features(src, image_id, other, other_id):
+                    conflicts.setdefault(name, [str(other.path)]).append(str(src.path))
+                continue
+            entries[name] = (src, image_id, src.find_image(name)[1])
+    if conflicts:
+        raise _conflict_error(conflicts)
+    return entries
+
+
+def _copy_images(out: ColmapDatabase, entries: dict, single_camera: bool) -> list[str]:
+    """The images of ``entries`` (as _database_entries) into ``out``, in name order, with
+    their cameras (one per input camera; with ``single_camera`` identical cameras shared);
+    returns their names."""
+    by_source: dict[tuple[int, int], int] = {}  # (input, camera_id) -> target camera
+    by_value: dict[tuple, int] = {}  # identical cameras -> target camera (single_camera)
+    added = []
+    for name in sorted(entries):
+        src, image_id, cam_id = entries[name]
+        camera = src.get_camera(cam_id)
+        value = (
+            int(camera.model.value),
+            camera.width,
+            camera.height,
+            np.asarray(camera.params, np.float64).tobytes(),
+            camera.has_prior_focal_length,
+        )
+        target_cam = by_source.get((id(src), cam_id))
+        if target_cam is None and single_camera:
+            target_cam = by_value.get(value)
+        extractor = EXTRACTOR_NAME if image_id in src.ours() else None
+        _, target_cam, _ = out.write_image(
+            name,
+            src.read_features(image_id),
+            camera,
+            camera.has_prior_focal_length,
+            target_cam,
+            extractor=extractor,
+        )
+        by_source[(id(src), cam_id)] = target_cam
+        if single_camera:
+            by_value.setdefault(value, target_cam)
+        added.append(name)
+    return added
 
 
 def _same_db_features(a: ColmapDatabase, ia: int, b: ColmapDatabase, ib: int) -> bool:

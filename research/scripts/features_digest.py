@@ -21,13 +21,13 @@ import argparse
 import hashlib
 import json
 import logging
+import subprocess
 import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from rectified_colmap.cli import main as cli_main
 from rectified_colmap.errors import run_script
 
 logger = logging.getLogger("features_digest")
@@ -77,10 +77,10 @@ def main(argv=None) -> int:
             label = f"{folder.parent.name}/{folder.name}"
             h5 = args.output_dir / conf / f"{folder.parent.name}-{folder.name}.h5"
             h5.parent.mkdir(parents=True, exist_ok=True)
-            rc = cli_main(
-                ["extract", "--image_path", str(folder), "--hloc_features", str(h5)]
-                + ["--conf", conf, "--no_progress", "--log_level", "WARNING"]
-            )
+            cmd = [sys.executable, "-m", "rectified_colmap.cli", "extract"]
+            cmd += ["--image_path", str(folder), "--hloc_features", str(h5)]
+            cmd += ["--conf", conf, "--no_progress", "--log_level", "WARNING"]
+            rc = subprocess.run(cmd).returncode  # the console script, as a user runs it
             if rc != 0:
                 logger.error("%s %s: extract exited with %d", conf, label, rc)
                 return rc
