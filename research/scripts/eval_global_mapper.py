@@ -193,7 +193,7 @@ def summarize(rows: list[dict]) -> list[dict]:
 
 
 def _registered(s: dict) -> str:
-    reg = f"{s['registered']:g}"
+    reg = f"{s['registered']:.3g}"
     if s["registered_min"] != s["registered_max"]:
         reg += f" ({s['registered_min']}-{s['registered_max']})"
     return f"{reg}/{s['images']}"
@@ -229,7 +229,7 @@ def markdown(summary: list[dict]) -> str:
         pts = sum(s["points"] for s in ss)
         secs = sum(s["map_s"] for s in ss)
         lines.append(
-            f"| {cameras} | {method} | {mapper} | {reg:g}/{total} | {pts:.0f} | {secs:.1f} |"
+            f"| {cameras} | {method} | {mapper} | {reg:.4g}/{total} | {pts:.0f} | {secs:.1f} |"
         )
     fewer = fewer_than_incremental(summary)
     lines.append("")
@@ -252,7 +252,7 @@ def fewer_than_incremental(summary: list[dict]) -> list[str]:
     for s in summary:
         key = (s["scene"], s["cameras"], s["subset"], s["method"])
         if s["mapper"] != "incremental" and key in inc and s["registered"] < inc[key]:
-            out.append(f"{' '.join(key)} {s['mapper']}: {s['registered']:g} < {inc[key]:g}")
+            out.append(f"{' '.join(key)} {s['mapper']}: {s['registered']:.3g} < {inc[key]:g}")
     return out
 
 
