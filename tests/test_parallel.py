@@ -1,10 +1,13 @@
 """Worker processes (rectified_colmap.parallel): never forked from a parent whose thread
-pools have run, usable from scripts and ``python -c``, same outputs as one process.
+pools have run, usable however the caller's main module was started (a script with or
+without a main guard, standard input, ``python -c``), same outputs as one process, no
+C-level stack dump when a pool stops its workers.
 
 Each run that could hang runs in a subprocess with a time limit: a hang fails the test
 instead of hanging the suite."""
 
 import logging
+import multiprocessing as mp
 import os
 import signal
 import sqlite3
@@ -45,13 +48,14 @@ def views(tmp_path_factory):
 
 
 def _run_python(
-    args: list[str], timeout: float, cwd: Path
+    args: list[str], timeout: float, cwd: Path, stdin: str | None = None
 ) -> tuple[subprocess.CompletedProcess, float]:
-    """``python *args`` in its own process group; on timeout the whole group (workers
-    included) is killed and the test fails."""
+    """``python *args`` (fed ``stdin``) in its own process group; on timeout the whole
+    group (workers included) is killed and the test fails."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, *args],
+        stdin=subprocess.PIPE if stdin is not None else subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -59,7 +63,7 @@ def _run_python(
         start_new_session=True,
     )
     try:
-        out, err = proc.communicate(timeout=timeout)
+        out, err = proc.communicate(stdin, timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         out, err = proc.communicate()
@@ -181,24 +185,142 @@ def test_cli_workers_from_python_c_equal_one_worker(views, tmp_path):
     assert len(loaded) == 3 and all(ln.startswith("[") for ln in loaded), proc.stderr
 
 
-def test_unguarded_script_fails_in_one_line_instead_of_hanging(views, tmp_path):
-    """A script starting workers without `if __name__ == "__main__":` is imported again by
-    each worker: the worker's extract stops at once (before any output lock) and so does
-    the run."""
-    script = tmp_path / "unguarded.py"
-    script.write_text(
-        textwrap.dedent(
-            f"""
-            from rectified_colmap.extraction import extract
-            extract({str(views)!r}, database={str(tmp_path / "u.db")!r},
-                    camera_model="PINHOLE", camera_params="{PARAMS}", depth_model="none",
-                    num_workers=2, progress=False)
-            """
-        )
+STACK_DUMP = "stack trace:"
+"""What glog's failure handler (installed by pycolmap) prints before its C-level frames."""
+
+
+def _extraction_code(views: Path, db: Path, guard: bool) -> str:
+    """A main module calling extract(num_workers=2) that prints one line per run of its
+    top level (a worker importing it would print again)."""
+    body = textwrap.dedent(
+        f"""
+        from rectified_colmap.extraction import extract
+        s = extract({str(views)!r}, database={str(db)!r}, camera_model="PINHOLE",
+                    camera_params="{PARAMS}", num_workers=2, progress=False)
+        assert s.ok and len(s.done) == {NUM_IMAGES}, s.report()
+        """
     )
+    top = 'print("top level ran", flush=True)\n'
+    if not guard:
+        return top + body
+    return top + "if __name__ == '__main__':\n" + textwrap.indent(body, "    ")
+
+
+def _check_written(proc: subprocess.CompletedProcess, db: Path) -> None:
+    """Exit 0, every image's features in ``db``, the caller's top level run once, and no
+    stack dump."""
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert STACK_DUMP not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stdout.count("top level ran") == 1, proc.stdout
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT COUNT(*) FROM keypoints WHERE rows > 0").fetchone()[0] == (
+            NUM_IMAGES
+        )
+
+
+def test_extraction_from_standard_input_with_workers(views, tmp_path):
+    """`python - <<EOF ... extract(num_workers=2) ... EOF`: the workers do not look for a
+    file `<stdin>` (which broke the pool, with a C-level stack dump)."""
+    db = tmp_path / "stdin.db"
+    proc, _ = _run_python(["-"], 240, tmp_path, stdin=_extraction_code(views, db, guard=False))
+    _check_written(proc, db)
+
+
+def test_extraction_from_python_c_with_workers(views, tmp_path):
+    db = tmp_path / "c.db"
+    proc, _ = _run_python(["-c", _extraction_code(views, db, guard=False)], 240, tmp_path)
+    _check_written(proc, db)
+
+
+@pytest.mark.parametrize("guard", [True, False], ids=["guarded", "unguarded"])
+def test_script_with_or_without_main_guard_runs_its_top_level_once(views, tmp_path, guard):
+    """Workers never import the caller's script: one without `if __name__ ==
+    "__main__":` works (it stopped with a one-line error), and no line of either runs
+    again in a worker."""
+    db = tmp_path / "script.db"
+    script = tmp_path / "script.py"
+    script.write_text(_extraction_code(views, db, guard))
+    proc, _ = _run_python([str(script)], 240, tmp_path)
+    _check_written(proc, db)
+
+
+MAIN_POOL = """
+import sys
+from rectified_colmap import parallel
+
+
+def square(x):
+    return x * x
+
+
+if __name__ == "__main__":
+    with parallel.context().Pool(2) as pool:
+        print(sum(pool.map(square, range(10))))
+"""
+
+
+def test_pools_that_run_main_functions_still_import_the_main_script(tmp_path):
+    """context()'s default (import_main=True) keeps multiprocessing's rule for pools whose
+    functions live in the caller's script (research/scripts/build_real_pool.py)."""
+    script = tmp_path / "main_pool.py"
+    script.write_text(MAIN_POOL)
     proc, _ = _run_python([str(script)], 120, tmp_path)
-    assert proc.returncode != 0
-    assert "if __name__ == '__main__':" in proc.stderr
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["285"]
+
+
+SIGTERM_SELF = """
+import multiprocessing as mp
+import signal
+import sys
+
+from rectified_colmap import parallel
+
+if __name__ == "__main__":
+    ours = sys.argv[1] == "ours"
+    ctx = parallel.context(["pycolmap"]) if ours else mp.get_context("forkserver")
+    if not ours:
+        ctx.set_forkserver_preload(["pycolmap"])
+    p = ctx.Process(target=signal.raise_signal, args=(signal.SIGTERM,))
+    p.start()
+    p.join(60)
+    print(p.exitcode)
+"""
+
+
+@pytest.mark.skipif(parallel.start_method() != "forkserver", reason="needs the forkserver")
+def test_a_worker_stopped_by_sigterm_ends_without_a_stack_dump(tmp_path):
+    """pycolmap (imported in the workers) installs glog's failure handler, which prints a
+    C-level stack dump on SIGTERM, as a pool sends its workers when another one died; our
+    workers end quietly."""
+    script = tmp_path / "sigterm.py"
+    script.write_text(SIGTERM_SELF)
+    plain, _ = _run_python([str(script), "plain"], 120, tmp_path)
+    if STACK_DUMP not in plain.stderr:
+        pytest.skip("this pycolmap prints no stack dump on SIGTERM: nothing to keep away")
+    proc, _ = _run_python([str(script), "ours"], 120, tmp_path)
+    assert proc.returncode == 0 and proc.stdout.split() == [str(-signal.SIGTERM)], proc.stderr
+    assert STACK_DUMP not in proc.stderr, proc.stderr
+
+
+def test_bootstrapping_check_names_the_guard(monkeypatch):
+    """A worker of a pool that imports the main script (import_main=True, e.g. the
+    caller's own) stops at once when that script starts an extraction unguarded."""
+    monkeypatch.setattr(mp.current_process(), "_inheriting", True, raising=False)
+    with pytest.raises(RuntimeError, match="if __name__ == '__main__':"):
+        parallel.check_not_bootstrapping()
+
+
+def test_main_module_attributes_are_restored_after_a_start(tmp_path):
+    """The main module's __file__ / __spec__ are hidden only while a worker starts."""
+    main = sys.modules["__main__"]
+    before = {k: v for k, v in vars(main).items() if k in ("__file__", "__spec__")}
+    ctx = parallel.context(import_main=False)
+    p = ctx.Process(target=time.sleep, args=(0,))
+    p.start()
+    p.join(60)
+    assert p.exitcode == 0
+    assert {k: v for k, v in vars(main).items() if k in ("__file__", "__spec__")} == before
 
 
 def test_worker_logs_are_replayed_in_the_parent(caplog):
@@ -230,5 +352,8 @@ def test_worker_logs_are_replayed_in_the_parent(caplog):
 
 def test_start_method_is_never_fork():
     assert parallel.start_method() in ("forkserver", "spawn")
-    ctx = parallel.context(["rectified_colmap.extraction.run"])
-    assert ctx.get_start_method() == parallel.start_method()
+    for import_main in (True, False):
+        ctx = parallel.context(["rectified_colmap.extraction.run"], import_main=import_main)
+        assert ctx.get_start_method() == parallel.start_method()
+        assert ctx.Process.import_main is import_main
+        assert issubclass(ctx.Process, mp.process.BaseProcess)

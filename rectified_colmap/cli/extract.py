@@ -6,7 +6,9 @@ import argparse
 import json
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 from . import UsageError, bool_flag_value, positive_int
 
@@ -183,21 +185,57 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-COLMAP_SIFT_OPTIONS = {
-    "max_image_size": int,
-    "first_octave": int,
-    "peak_threshold": float,
-    "edge_threshold": float,
-    "max_num_orientations": int,
-    "upright": bool_flag_value,
-}
-"""COLMAP's --SiftExtraction.X options that set ``sift.X`` of the configuration."""
+def colmap_max_image_size(text: str) -> int:
+    """``--FeatureExtraction.max_image_size`` / ``--SiftExtraction.max_image_size``: a size,
+    or (COLMAP 4.x's -1) 0 or less for the extractor's default, COLMAP's 3200."""
+    from ..config import SiftConf
 
-NOT_APPLIED = {
+    value = int(text)
+    return value if value > 0 else SiftConf.max_image_size
+
+
+FEATURE_TYPES = ("SIFT",)
+"""``--FeatureExtraction.type`` values accepted: rectified SIFT is COLMAP's SIFT."""
+
+
+def colmap_feature_type(text: str) -> str:
+    """``--FeatureExtraction.type``: SIFT (any case); any other COLMAP type is an error."""
+    if text.strip().upper() not in FEATURE_TYPES:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: this extractor writes SIFT only (rectified COLMAP SIFT); "
+            "use `colmap feature_extractor` for other feature types"
+        )
+    return text.strip().upper()
+
+
+class Setting(NamedTuple):
+    """What a COLMAP option sets here: ``target`` (``sift.<field>`` of the configuration,
+    ``num_workers`` or ``feature_type``: checked, nothing to set) and the value's type."""
+
+    target: str
+    kind: Callable[[str], object]
+
+
+COLMAP_OPTIONS: dict[str, Setting | str] = {
+    # COLMAP 4.x: the detector-independent options are --FeatureExtraction.*, the SIFT ones
+    # stay --SiftExtraction.*; COLMAP 3.x spells them all --SiftExtraction.*
+    "FeatureExtraction.type": Setting("feature_type", colmap_feature_type),
+    "FeatureExtraction.max_image_size": Setting("sift.max_image_size", colmap_max_image_size),
+    "SiftExtraction.max_image_size": Setting("sift.max_image_size", colmap_max_image_size),
+    "FeatureExtraction.num_threads": Setting("num_workers", int),
+    "SiftExtraction.num_threads": Setting("num_workers", int),
+    "SiftExtraction.first_octave": Setting("sift.first_octave", int),
+    "SiftExtraction.peak_threshold": Setting("sift.peak_threshold", float),
+    "SiftExtraction.edge_threshold": Setting("sift.edge_threshold", float),
+    "SiftExtraction.max_num_orientations": Setting("sift.max_num_orientations", int),
+    "SiftExtraction.upright": Setting("sift.upright", bool_flag_value),
+    # accepted, not applied (said at INFO): why
+    "FeatureExtraction.use_gpu": "SIFT runs on the CPU (pycolmap); --num_workers sets the "
+    "processes",
     "SiftExtraction.use_gpu": "SIFT runs on the CPU (pycolmap); --num_workers sets the processes",
+    "FeatureExtraction.gpu_index": "SIFT runs on the CPU (pycolmap)",
     "SiftExtraction.gpu_index": "SIFT runs on the CPU (pycolmap)",
-    "ImageReader.single_camera_per_image": "one camera per image is the default",
-    "descriptor_normalization": "descriptors are COLMAP's l1_root (RootSIFT), as its default",
+    "SiftExtraction.darkness_adaptivity": "COLMAP applies it on the GPU only; SIFT runs on the CPU",
     "SiftExtraction.estimate_affine_shape": "affine shapes come from the rectification",
     "SiftExtraction.domain_size_pooling": "not available in rectified SIFT",
     "SiftExtraction.dsp_min_scale": "not available in rectified SIFT",
@@ -205,54 +243,74 @@ NOT_APPLIED = {
     "SiftExtraction.dsp_num_scales": "not available in rectified SIFT",
     "SiftExtraction.num_octaves": "COLMAP's default (4) is used",
     "SiftExtraction.octave_resolution": "COLMAP's default (3) is used",
+    "SiftExtraction.normalization": "descriptors are COLMAP's L1_ROOT (RootSIFT), its default",
+    "descriptor_normalization": "descriptors are COLMAP's l1_root (RootSIFT), its default",
+    "AlikedExtraction.max_num_features": "ALIKED features are not made here (SIFT only)",
+    "AlikedExtraction.min_score": "ALIKED features are not made here (SIFT only)",
+    "AlikedExtraction.n16rot_model_path": "ALIKED features are not made here (SIFT only)",
+    "AlikedExtraction.n32_model_path": "ALIKED features are not made here (SIFT only)",
+    "ImageReader.single_camera_per_image": "one camera per image is the default",
     "ImageReader.camera_mask_path": "not available in rectified SIFT",
     "ImageReader.existing_camera_id": "new images get new cameras (or --single_camera)",
 }
-"""COLMAP feature_extractor options accepted and not applied, with why (said at INFO)."""
+"""``colmap feature_extractor``'s options (COLMAP 3.x and 4.x spellings; those with a flag
+of their own, ``--ImageReader.camera_model``, ``--SiftExtraction.max_num_features``, ...,
+are in :func:`register`): a :class:`Setting`, or why the option is accepted and not
+applied. Spellings of one setting make one argument, the last given wins."""
+
+
+def colmap_arguments() -> dict[str, list[str]]:
+    """The arguments :data:`COLMAP_OPTIONS` makes: {setting target or not-applied option:
+    its COLMAP spellings}, in the table's order."""
+    out: dict[str, list[str]] = {}
+    for option, what in COLMAP_OPTIONS.items():
+        out.setdefault(what.target if isinstance(what, Setting) else option, []).append(option)
+    return out
+
+
+_HELP = {
+    "feature_type": "SIFT (the default); any other type is an error",
+    "num_workers": "= --num_workers N (0 or -1: one per CPU)",
+    "sift.max_image_size": "sets sift.max_image_size of --conf (-1: COLMAP's default, 3200)",
+}
 
 
 def add_colmap_sift_options(p: argparse.ArgumentParser) -> None:
-    """COLMAP's SiftExtraction / ImageReader spellings: mapped where they have a meaning
-    here, else accepted and reported as not applied."""
+    """The options of :data:`COLMAP_OPTIONS`: mapped where they have a meaning here, else
+    accepted and reported as not applied."""
     g = p.add_argument_group(
         "COLMAP feature_extractor options",
-        "accepted as `colmap feature_extractor` spells them; --SiftExtraction.num_threads "
-        "is --num_workers (-1: one per CPU)",
+        "accepted as `colmap feature_extractor` spells them, COLMAP 4.x "
+        "(--FeatureExtraction.*) and 3.x (--SiftExtraction.*) alike",
     )
-    g.add_argument(
-        "--SiftExtraction.num_threads", dest="num_threads", type=int, help=argparse.SUPPRESS
-    )
-    for key, kind in COLMAP_SIFT_OPTIONS.items():
-        g.add_argument(
-            f"--SiftExtraction.{key}",
-            dest=f"sift_{key}",
-            type=kind,
-            default=None,
-            help=f"sets sift.{key} of --conf",
-        )
-    for option, why in NOT_APPLIED.items():
-        g.add_argument(
-            f"--{option}", dest=_not_applied_dest(option), default=None, help=f"ignored: {why}"
-        )
+    for key, options in colmap_arguments().items():
+        what = COLMAP_OPTIONS[options[0]]
+        flags = [f"--{o}" for o in options]
+        if isinstance(what, Setting):
+            help_text = _HELP.get(key, f"sets {key} of --conf")
+            metavar = "SIFT" if key == "feature_type" else "VALUE"
+            g.add_argument(*flags, dest=_dest(key), type=what.kind, metavar=metavar, help=help_text)
+        else:
+            g.add_argument(*flags, dest=_dest(key), metavar="VALUE", help=f"not applied: {what}")
 
 
-def _not_applied_dest(option: str) -> str:
-    return "not_applied_" + option.replace(".", "_")
+def _dest(key: str) -> str:
+    return "colmap_" + key.replace(".", "_")
 
 
 def apply_colmap_options(args: argparse.Namespace, conf) -> None:
     """COLMAP's options into ``conf`` and ``args.num_workers``; those that do not apply said
     once each at INFO."""
-    for key in COLMAP_SIFT_OPTIONS:
-        value = getattr(args, f"sift_{key}", None)
-        if value is not None:
-            setattr(conf.sift, key, value)
-    if args.num_threads is not None:
-        args.num_workers = (os.cpu_count() or 1) if args.num_threads <= 0 else args.num_threads
-    for option, why in NOT_APPLIED.items():
-        value = getattr(args, _not_applied_dest(option), None)
-        if value is not None:
-            logger.info("--%s %s: not applied (%s)", option, value, why)
+    for key in colmap_arguments():
+        value = getattr(args, _dest(key), None)
+        if value is None:
+            continue
+        if key in COLMAP_OPTIONS and not isinstance(COLMAP_OPTIONS[key], Setting):
+            logger.info("--%s %s: not applied (%s)", key, value, COLMAP_OPTIONS[key])
+        elif key == "num_workers":
+            args.num_workers = (os.cpu_count() or 1) if value <= 0 else value
+        elif key.startswith("sift."):
+            setattr(conf.sift, key.removeprefix("sift."), value)
 
 
 def _load_conf(spec: str, max_num_features: int | None):

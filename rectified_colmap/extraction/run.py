@@ -14,8 +14,10 @@ is optional: ``pip install 'rectified-colmap[ray]'``); each is a callable
 
 Worker processes are never forked from the caller (rectified_colmap.parallel: a fork of a
 process whose OpenCV, onnxruntime or torch thread pools have run can hang): they start
-from a forkserver that has imported this module, and their log records come back with
-their outcomes, to go through the caller's handlers.
+from a forkserver that has imported this module, never import the caller's main module
+(everything they run is in this package: a script without a main guard, standard input,
+``python -c`` and notebooks all work), and their log records come back with their
+outcomes, to go through the caller's handlers.
 """
 
 from __future__ import annotations
@@ -223,7 +225,7 @@ class PoolRunner:
         level = logging.getLogger("rectified_colmap").getEffectiveLevel()
         with ProcessPoolExecutor(
             self.num_workers,
-            mp_context=context([__name__]),
+            mp_context=context([__name__], import_main=False),
             initializer=_start_pool_worker,
             initargs=(self.init, level),
         ) as ex:

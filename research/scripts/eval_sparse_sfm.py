@@ -58,14 +58,18 @@ from rectified_colmap_research.evaluation.colmap_sfm import (
     best_model,
     conf_args,
     connect,
+    copy_database,
     match_and_map,
     model_stats,
     parse_methods,
+    parse_subset,
     pinhole_camera_args,
     rectified_command,
     rotation_errors,
     run,
     sift_command,
+    subset_label,
+    subset_names,
     verified_matches,
 )
 
@@ -88,27 +92,6 @@ class SceneSet(NamedTuple):
     ground_truth: bool  # False: an SfM result used as the reference
     subsets: list[str]
     camera: tuple[str, ...] = ()  # --ImageReader flags of both methods
-
-
-# -- subsets ------------------------------------------------------------------------------
-
-
-def parse_subset(spec: str) -> slice:
-    """``START::STEP`` (e.g. ``0::2``, ``1::2``, ``0::3``; ``0::1`` is all) -> a slice.
-    Raises ValueError for anything else."""
-    start, sep, step = spec.partition("::")
-    if not sep or not start.isdigit() or not step.isdigit() or int(step) < 1:
-        raise ValueError(f"subset {spec!r}: expected START::STEP, e.g. 0::2")
-    return slice(int(start), None, int(step))
-
-
-def subset_names(names: list[str], spec: str) -> list[str]:
-    """The subset ``spec`` of the images ``names`` in name order."""
-    return sorted(names)[parse_subset(spec)]
-
-
-def subset_label(spec: str) -> str:
-    return "all" if parse_subset(spec) == slice(0, None, 1) else spec
 
 
 # -- pose errors --------------------------------------------------------------------------
@@ -193,13 +176,6 @@ def keep_images(db: Path, names: list[str]) -> None:
         con.execute("DELETE FROM matches")
         con.execute("DELETE FROM two_view_geometries")
         con.execute("DELETE FROM cameras WHERE camera_id NOT IN (SELECT camera_id FROM images)")
-
-
-def copy_database(src: Path, dst: Path) -> None:
-    """A copy of a SQLite database through SQLite's backup API (with what is still in its
-    -wal file, which a file copy would miss)."""
-    with connect(src) as a, connect(dst) as b:
-        a.backup(b)
 
 
 def strip_features(db: Path) -> None:

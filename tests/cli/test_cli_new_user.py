@@ -5,6 +5,9 @@ without depth (plain SIFT: fast), and checks the exit code, the message and that
 written where the run stopped on a bad argument.
 """
 
+import argparse
+import os
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -318,3 +321,144 @@ def test_summary_counts_plain_sift_images_as_images(images, tmp_path, caplog):
     assert _extract(images, tmp_path / "db.db") == 0
     assert "plain SIFT only: 3 of the 3 extracted image(s)" in caplog.text
     assert "of them with plain SIFT" not in caplog.text
+
+
+# -- COLMAP 4.x spellings (issue 43) ------------------------------------------------------
+
+
+def _keypoints(db: Path) -> dict[str, bytes]:
+    with sqlite3.connect(db) as con:
+        rows = con.execute("SELECT i.name, k.data FROM keypoints k JOIN images i USING (image_id)")
+        return dict(rows.fetchall())
+
+
+def test_colmap4_spellings_give_the_keypoints_of_the_colmap3_ones(images, tmp_path, caplog):
+    """`--FeatureExtraction.*` (COLMAP 4.x) sets what `--SiftExtraction.*` (3.x) sets: the
+    same keypoints, with the default depth network; max_image_size did apply (other
+    keypoints than without it); the GPU flags are said not to apply."""
+    caplog.set_level("INFO")
+    runs = {
+        "colmap4": ["--FeatureExtraction.type", "SIFT", "--FeatureExtraction.max_image_size"]
+        + ["300", "--FeatureExtraction.num_threads", "1", "--FeatureExtraction.use_gpu", "0"],
+        "colmap3": ["--SiftExtraction.max_image_size", "300", "--SiftExtraction.num_threads"]
+        + ["1", "--SiftExtraction.use_gpu", "0"],
+        "full size": [],
+    }
+    kps = {}
+    for name, flags in runs.items():
+        db = tmp_path / f"{name}.db"
+        argv = ["extract", "--database_path", str(db), "--image_path", str(images)]
+        assert main([*argv, "--no_progress", *flags]) == 0
+        kps[name] = _keypoints(db)
+    assert len(kps["colmap4"]) == 3 and kps["colmap4"] == kps["colmap3"]
+    assert all(kps["colmap4"][n] != kps["full size"][n] for n in kps["colmap4"])
+    assert "--FeatureExtraction.use_gpu 0: not applied" in caplog.text
+
+
+def test_feature_types_other_than_sift_stop_in_one_line(images, tmp_path, capsys):
+    db = tmp_path / "db.db"
+    assert _extract(images, db, "--FeatureExtraction.type", "ALIKED_N16ROT") == 2
+    err = capsys.readouterr().err.strip()
+    assert "--FeatureExtraction.type" in err and "SIFT only" in err and len(err.splitlines()) == 1
+    assert not db.exists()
+    assert _extract(images, db, "--FeatureExtraction.type", "sift") == 0
+
+
+def _extract_parser():
+    from rectified_colmap.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["extract"]
+
+
+def _installed_extraction_options() -> list[str]:
+    """`--Group.name` of every field of the installed pycolmap's FeatureExtractionOptions:
+    its own fields as FeatureExtraction.*, a nested group's (``sift``, ...) as
+    SiftExtraction.* and so on, as COLMAP 4's feature_extractor spells them."""
+
+    def fields(cls) -> list[str]:
+        return [n for n in dir(cls) if isinstance(getattr(cls, n), property)]
+
+    out = []
+    top = pycolmap.FeatureExtractionOptions()
+    for name in fields(type(top)):
+        value = getattr(top, name)
+        if hasattr(value, "todict"):  # a nested group of options
+            group = f"{name[0].upper()}{name[1:]}Extraction"
+            out += [f"--{group}.{n}" for n in fields(type(value))]
+        else:
+            out.append(f"--FeatureExtraction.{name}")
+    return out
+
+
+def test_every_feature_extraction_option_of_the_installed_pycolmap_maps_or_says_why_not():
+    """A COLMAP release that adds or renames an extraction option fails here, not in a
+    user's run: each option of the installed pycolmap is accepted, and --help says what it
+    sets or why it is not applied."""
+    options = _installed_extraction_options()
+    assert "--FeatureExtraction.max_image_size" in options
+    assert "--SiftExtraction.peak_threshold" in options
+    parser = _extract_parser()
+    by_flag = {s: a for a in parser._actions for s in a.option_strings}
+    help_text = " ".join(parser.format_help().split())
+    missing = [o for o in options if o not in by_flag]
+    assert not missing, f"COLMAP options unknown to `rectified-colmap extract`: {missing}"
+    for option in options:
+        action = by_flag[option]
+        assert option in help_text and action.help and action.help != argparse.SUPPRESS
+        if action.help.startswith("not applied"):
+            why = action.help.removeprefix("not applied:").split()
+            assert len(why) >= 3, f"{option}: not applied, but not why"
+        else:  # a setting: its help says what it sets
+            assert "not applied" not in action.help and len(action.help.split()) >= 3, option
+
+
+@pytest.mark.parametrize(
+    "option, value, field, expect",
+    [
+        ("--FeatureExtraction.max_image_size", "640", "max_image_size", 640),
+        ("--SiftExtraction.max_image_size", "640", "max_image_size", 640),
+        ("--FeatureExtraction.max_image_size", "-1", "max_image_size", 3200),
+        ("--SiftExtraction.first_octave", "0", "first_octave", 0),
+        ("--SiftExtraction.peak_threshold", "0.02", "peak_threshold", 0.02),
+        ("--SiftExtraction.edge_threshold", "5", "edge_threshold", 5.0),
+        ("--SiftExtraction.max_num_orientations", "1", "max_num_orientations", 1),
+        ("--SiftExtraction.upright", "1", "upright", True),
+        ("--SiftExtraction.max_num_features", "100", "max_num_features", 100),
+    ],
+)
+def test_colmap_sift_options_set_the_configuration(option, value, field, expect):
+    from rectified_colmap.cli.extract import _load_conf, apply_colmap_options
+
+    args = _extract_parser().parse_args(["--image_path", "x", option, value])
+    conf = _load_conf(args.conf, args.max_num_features)  # sets max_num_features
+    if field != "max_num_features":
+        setattr(conf.sift, field, (not expect) if isinstance(expect, bool) else expect + 1)
+    apply_colmap_options(args, conf)
+    assert getattr(conf.sift, field) == expect
+
+
+@pytest.mark.parametrize(
+    "option", ["--FeatureExtraction.num_threads", "--SiftExtraction.num_threads"]
+)
+def test_num_threads_is_num_workers_in_both_spellings(option):
+    from rectified_colmap.cli.extract import apply_colmap_options
+
+    for value, workers in (("3", 3), ("-1", os.cpu_count() or 1)):
+        args = _extract_parser().parse_args(["--image_path", "x", option, value])
+        apply_colmap_options(args, None)
+        assert args.num_workers == workers
+
+
+@pytest.mark.skipif(shutil.which("colmap") is None, reason="colmap command line not installed")
+def test_every_extraction_option_of_the_installed_colmap_is_accepted():
+    """The installed `colmap feature_extractor`'s ImageReader / SiftExtraction /
+    FeatureExtraction options (3.8 here) are all accepted. (Its general options, --log_level
+    0-2, --random_seed, --project_path, --camera_mode, are not feature-extraction ones.)"""
+    out = subprocess.run(
+        [shutil.which("colmap"), "feature_extractor", "-h"], capture_output=True, text=True
+    ).stdout
+    flags = set(re.findall(r"--((?:ImageReader|SiftExtraction|FeatureExtraction)\.\w+)", out))
+    assert "SiftExtraction.max_image_size" in flags or "FeatureExtraction.max_image_size" in flags
+    accepted = {s for a in _extract_parser()._actions for s in a.option_strings}
+    assert not {f"--{f}" for f in flags} - accepted

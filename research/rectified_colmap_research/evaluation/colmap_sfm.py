@@ -1,7 +1,8 @@
 """Running the COLMAP executable for SfM evaluations: commands, timing, databases, models.
 
 Shared by ``scripts/eval_colmap_sfm.py`` (all images of a scene) and
-``scripts/eval_sparse_sfm.py`` (sparse subsets). Plain COLMAP SIFT is ``colmap
+``scripts/eval_sparse_sfm.py`` (sparse subsets: :func:`parse_subset`, also
+``scripts/eval_global_mapper.py``'s). Plain COLMAP SIFT is ``colmap
 feature_extractor``; rectified SIFT is ``rectified-colmap extract`` run as a subprocess with
 the same camera flags and budget.
 """
@@ -24,6 +25,27 @@ from rectified_colmap.geometry import rotation_angle_deg
 from .methods import parse_variants
 
 VERIFIED = (2, 3, 4, 5, 6)  # CALIBRATED, UNCALIBRATED, PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC
+
+
+# -- subsets ------------------------------------------------------------------------------
+
+
+def parse_subset(spec: str) -> slice:
+    """``START::STEP`` (e.g. ``0::2``, ``1::2``, ``0::3``; ``0::1`` is all) -> a slice.
+    Raises ValueError for anything else."""
+    start, sep, step = spec.partition("::")
+    if not sep or not start.isdigit() or not step.isdigit() or int(step) < 1:
+        raise ValueError(f"subset {spec!r}: expected START::STEP, e.g. 0::2")
+    return slice(int(start), None, int(step))
+
+
+def subset_names(names: list[str], spec: str) -> list[str]:
+    """The subset ``spec`` of the images ``names`` in name order."""
+    return sorted(names)[parse_subset(spec)]
+
+
+def subset_label(spec: str) -> str:
+    return "all" if parse_subset(spec) == slice(0, None, 1) else spec
 
 
 def run(cmd: list[str], log: Path, allow: str | None = None) -> float:
@@ -55,6 +77,13 @@ def connect(database: Path):
             yield con
     finally:
         con.close()
+
+
+def copy_database(src: Path, dst: Path) -> None:
+    """A copy of a SQLite database through SQLite's backup API (with what is still in its
+    -wal file, which a file copy would miss)."""
+    with connect(src) as a, connect(dst) as b:
+        a.backup(b)
 
 
 def verified_matches(database: Path) -> tuple[int, int]:
