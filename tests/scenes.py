@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.eval.pairs import Pair
 
 

@@ -128,7 +128,8 @@ def test_retained_memory_is_reused(tmp_path):
         "print(faults, rss() - before)\n"
     )
     root = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "PYTHONPATH": str(root)}
+    # tests.conftest's textured plane is research code (rectified_colmap_research.synth)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), str(root / "research")])}
     out = subprocess.run(
         [sys.executable, str(script)], cwd=root, capture_output=True, text=True, check=True, env=env
     ).stdout.split()

@@ -300,7 +300,7 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
     from rectified_colmap.eval.matching import match_ratio
     from rectified_colmap.geometry import scaled_size
     from rectified_colmap.pipeline import extract_image
-    from rectified_colmap.synth.planar import look_at, plane_view, textured_image
+    from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
 
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     cam = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)

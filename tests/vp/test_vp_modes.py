@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.features import (
     detect_sift,

@@ -4,7 +4,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from rectified_colmap import synth
+from rectified_colmap.demo.scene import FACADE
+from rectified_colmap.demo.views import TARGET_KINDS
+from rectified_colmap_research import synth
 
 W, H = 160, 120
 
@@ -195,7 +197,7 @@ def test_view_pair_constraints(target, camera):
         scene = gen(rng)
         p0, p1, X = synth.view_pair(scene, rng, 50, 90, target, camera=camera)
         assert 50 - 1e-6 <= synth.angle_between_views(p0, p1, X) <= 90 + 1e-6
-        kinds = synth.views.TARGET_KINDS[target]
+        kinds = TARGET_KINDS[target]
         q = synth.raycast(scene, synth.camera_center(p0)[None], X - synth.camera_center(p0))[1]
         assert scene.kind[q[0]] in kinds
         sides = []
@@ -290,7 +292,7 @@ def test_photo_textures_from_a_folder(tmp_path, camera):
     cv2.imwrite(str(tmp_path / "sub" / "red.png"), photo)
     (tmp_path / "notes.txt").write_text("not an image")
     scene = synth.street(np.random.default_rng(13), texture_dir=tmp_path, photo_prob=1.0)
-    facades = np.flatnonzero(scene.kind == synth.scene.FACADE)
+    facades = np.flatnonzero(scene.kind == FACADE)
     assert all(scene.textures[scene.tex[q]].photo >= 0 for q in facades)
     p0, _, _ = synth.view_pair(scene, np.random.default_rng(0), 0, 30, "facade", camera=camera)
     r = synth.render(scene, camera, p0)
@@ -370,7 +372,7 @@ def test_clouds_change_only_the_sky(street_scene, camera):
     the cloud map is periodic in azimuth (no seam behind the camera)."""
     import dataclasses
 
-    from rectified_colmap.synth.render import _cloud_map
+    from rectified_colmap.demo.render import _cloud_map
 
     pose = synth.look_at([0.0, 5.0, 1.6], [0.0, 40.0, 12.0])
     clear = synth.render(street_scene, camera, pose, supersample=1)

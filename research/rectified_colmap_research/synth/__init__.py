@@ -1,4 +1,7 @@
-"""Procedural street scenes of textured planar quads with exact depth, normals and poses.
+"""Procedural street scenes of textured planar quads with exact depth, normals and poses:
+the renderer of the demo wing (``rectified_colmap.demo``) with what training, tests and
+benchmarks add (random training samples here; ``lines``: line drawings of a street for the
+vanishing-point tests; ``planar``: one textured plane seen by a pinhole camera).
 
 World frame: metres, z up, ground z = 0. Cameras: pycolmap PINHOLE / SIMPLE_PINHOLE (COLMAP
 pixel convention); poses: ``cam_from_world`` pycolmap.Rigid3d (camera x right, y down,
@@ -7,7 +10,7 @@ z forward).
 How to use::
 
     import numpy as np
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
 
     rng = np.random.default_rng(0)
     scene = synth.street(rng)                      # also corner(), square(), rubble()
@@ -35,10 +38,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .render import RenderResult, cast, raycast, render
-from .scene import KIND_NAMES, Scene, corner, rubble, square, street
-from .textures import make_texture
-from .views import (
+from rectified_colmap.demo.render import RenderResult, cast, raycast, render
+from rectified_colmap.demo.scene import KIND_NAMES, Scene, corner, rubble, square, street
+from rectified_colmap.demo.textures import make_texture
+from rectified_colmap.demo.views import (
     angle_between_views,
     backproject,
     camera_center,
