@@ -8,12 +8,13 @@ rotations with the ground truth.
 The demo wing: this job (:func:`run_demo`, :func:`render_walk`) and the renderer it runs,
 procedural street scenes of textured planar quads with exact depth, normals and poses:
 ``scene`` (the quad scene, its builder), ``textures`` (procedural and photo textures),
-``render`` (ray casting: image, depth, normals, plane ids), ``views`` (cameras, poses,
-the walk along a street, ground-truth helpers). World frame: metres, z up, ground z = 0;
-cameras are pycolmap PINHOLE / SIMPLE_PINHOLE (COLMAP pixel convention); poses
-``cam_from_world`` pycolmap.Rigid3d (camera x right, y down, z forward). What only
-training, tests and benchmarks use (random training samples, line drawings, one textured
-plane) is in research/ (``rectified_colmap_research.synth``).
+``render`` (ray casting: image, depth, normals, plane ids), ``views`` (pinhole cameras,
+look-at poses, the walk along a street). World frame: metres, z up, ground z = 0; cameras
+are pycolmap PINHOLE / SIMPLE_PINHOLE (COLMAP pixel convention); poses ``cam_from_world``
+pycolmap.Rigid3d (camera x right, y down, z forward). What only training, tests and
+benchmarks use (random views, view pairs and their ground truth, the corner, square and
+rubble scenes, random training samples, line drawings, one textured plane) is research code:
+``rectified_colmap_research.synth`` (research/, not installed).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Scenes of planar textured quads and their procedural generators.
+"""Scenes of planar textured quads, their builder and the demo's street.
 
 World frame: metres, **z up**, the ground is z = 0 (streets run along +y).
 
@@ -8,10 +8,12 @@ with ``texel`` metres per texel: texel ``(col, row) = (a, b) / texel + tex_offse
 at ``origin``; for walls ``ev`` points down so row 0 is the top). ``normal`` is the outward
 unit normal (used only for shading; renders orient normals toward the camera).
 
-Generators (all deterministic from a numpy Generator): :func:`street`, :func:`corner`,
-:func:`square`, :func:`rubble`; street, corner and square take ``trees`` (opt-in, so that
+Scenes are built with :class:`SceneBuilder` (quads, boxes, ground tiles, textures) and its
+helpers (:func:`add_facade_row`, :func:`add_clutter`, :func:`add_trees`), all deterministic
+from a numpy Generator. :func:`street` is the demo's scene (more layouts, corner, square and
+rubble, are rectified_colmap_research.synth.scenes); it takes ``trees`` (opt-in, so that
 seeded scenes without it stay as they were): trees of many small leaf quads
-(:func:`_trees`), the commonest non-planar thing in real street photos. Each scene also
+(:func:`add_trees`), the commonest non-planar thing in real street photos. Each scene also
 knows where cameras may stand (``free_lo``/``free_hi`` box minus the ``blockers`` oriented
 boxes) for the view helpers.
 """
@@ -150,7 +152,7 @@ class Scene:
 # -- construction ----------------------------------------------------------------------------
 
 
-class _Builder:
+class SceneBuilder:
     """Accumulates quads and textures; one texture per quad unless shared."""
 
     def __init__(
@@ -311,12 +313,12 @@ class _Builder:
         )
 
 
-def _photos(texture_dir) -> tuple:
+def texture_photos(texture_dir) -> tuple:
     return tx.load_photos(str(texture_dir)) if texture_dir is not None else ()
 
 
-def _facade_row(
-    b: _Builder,
+def add_facade_row(
+    b: SceneBuilder,
     rng,
     start,
     along,
@@ -379,7 +381,7 @@ def _facade_row(
         s += w
 
 
-def _clutter(b: _Builder, rng, lo, hi, n: int) -> None:
+def add_clutter(b: SceneBuilder, rng, lo, hi, n: int) -> None:
     """``n`` boxes (kiosks, containers, vans) on the ground in the xy rectangle lo..hi."""
     for _ in range(n):
         yaw = rng.uniform(0, np.pi) if rng.random() < 0.5 else rng.choice([0, np.pi / 2])
@@ -390,7 +392,7 @@ def _clutter(b: _Builder, rng, lo, hi, n: int) -> None:
         b.box(c - (e1 + e2) / 2, e1, e2, H, kinds=(CLUTTER,) * 5, textures=("clutter",) * 5)
 
 
-def _trees(b: _Builder, rng, lo, hi, n: int, leaves=(150, 320)) -> None:
+def add_trees(b: SceneBuilder, rng, lo, hi, n: int, leaves=(150, 320)) -> None:
     """``n`` trees in the xy rectangle lo..hi: a trunk (a thin box) and a crown of many
     small randomly oriented leaf-cluster quads in an ellipsoid (no dominant plane, like
     rubble), sharing a few foliage textures. Each tree is a camera blocker."""
@@ -446,7 +448,7 @@ def street(
     sides facing each other (setbacks, gaps, balconies), clutter boxes, sky behind; with
     ``trees``, 2-8 trees on the sidewalks."""
     seed = int(rng.integers(1 << 31))
-    b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
+    b = SceneBuilder(rng, texel=texel, photos=texture_photos(texture_dir), photo_prob=photo_prob)
     L = length or rng.uniform(50.0, 90.0)
     w = rng.uniform(9.0, 22.0)
     sw = rng.uniform(1.5, 3.5)
@@ -462,9 +464,9 @@ def street(
         "paving" if two else "cobbles",
         tile=10.0 if two else 15.0,
     )
-    _facade_row(b, rng, [-w / 2, L, 0], [0, -1, 0], [1, 0, 0], L)
+    add_facade_row(b, rng, [-w / 2, L, 0], [0, -1, 0], [1, 0, 0], L)
     if two:
-        _facade_row(b, rng, [w / 2, 0, 0], [0, 1, 0], [-1, 0, 0], L)
+        add_facade_row(b, rng, [w / 2, 0, 0], [0, 1, 0], [-1, 0, 0], L)
     if rng.random() < 0.5:  # a building closing the street
         b.box(
             [-w / 2 - 6, L + 10, 0],
@@ -474,12 +476,12 @@ def street(
             kinds=(FACADE, WALL, WALL, WALL, ROOF),
             textures=("facade", "plaster", "plaster", "plaster", "roof"),
         )
-    _clutter(b, rng, [-w / 2 + 0.5, 2], [w / 2 - 0.5, L - 2], int(rng.integers(2, 9)))
+    add_clutter(b, rng, [-w / 2 + 0.5, 2], [w / 2 - 0.5, L - 2], int(rng.integers(2, 9)))
     if trees:
         side = [(-w / 2 + 0.3, -w / 2 + sw - 0.2), (w / 2 - sw + 0.2, w / 2 - 0.3)]
         for k in range(int(rng.integers(2, 9))):
             x0, x1 = side[k % 2 if two else 0]
-            _trees(b, rng, [x0, 2], [max(x0, x1), L - 2], 1)
+            add_trees(b, rng, [x0, 2], [max(x0, x1), L - 2], 1)
     return b.finish(
         "street",
         seed,
@@ -487,81 +489,3 @@ def street(
         [w / 2 - 0.8, L, 10.0],
         {"width": w, "length": L, "two_sided": two, "sidewalk": sw},
     )
-
-
-def corner(
-    rng: np.random.Generator,
-    texture_dir=None,
-    photo_prob: float = 0.5,
-    texel: float = 0.025,
-    trees: bool = False,
-) -> Scene:
-    """Two orthogonal rows of facades (along +x at y = 0 facing +y, along +y at x = 0
-    facing +x) and the ground in front of them; with ``trees``, 1-5 trees."""
-    seed = int(rng.integers(1 << 31))
-    b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
-    L = rng.uniform(25.0, 45.0)
-    b.ground(-5, L + 40, -5, L + 40, rng.choice(["cobbles", "paving", "asphalt"]), tile=15.0)
-    _facade_row(b, rng, [0, 0, 0], [1, 0, 0], [0, 1, 0], L, setback_prob=0.25)
-    _facade_row(b, rng, [0, L, 0], [0, -1, 0], [1, 0, 0], L, setback_prob=0.25)
-    _clutter(b, rng, [3, 3], [L * 0.8, L * 0.8], int(rng.integers(1, 6)))
-    if trees:
-        _trees(b, rng, [4, 4], [L, L], int(rng.integers(1, 6)))
-    return b.finish("corner", seed, [2.0, 2.0, 1.2], [L, L, 10.0], {"length": L})
-
-
-def square(
-    rng: np.random.Generator,
-    texture_dir=None,
-    photo_prob: float = 0.5,
-    texel: float = 0.025,
-    trees: bool = False,
-) -> Scene:
-    """A rectangular square closed by facades on all four sides (facing inward); with
-    ``trees``, 1-6 trees."""
-    seed = int(rng.integers(1 << 31))
-    b = _Builder(rng, texel=texel, photos=_photos(texture_dir), photo_prob=photo_prob)
-    W, D = rng.uniform(20, 45), rng.uniform(20, 45)
-    b.ground(-5, W + 5, -5, D + 5, rng.choice(["cobbles", "paving", "asphalt"]), tile=12.0)
-    _facade_row(b, rng, [0, 0, 0], [1, 0, 0], [0, 1, 0], W, setback_prob=0.2)
-    _facade_row(b, rng, [W, 0, 0], [0, 1, 0], [-1, 0, 0], D, setback_prob=0.2)
-    _facade_row(b, rng, [W, D, 0], [-1, 0, 0], [0, -1, 0], W, setback_prob=0.2)
-    _facade_row(b, rng, [0, D, 0], [0, -1, 0], [1, 0, 0], D, setback_prob=0.2)
-    _clutter(b, rng, [3, 3], [W - 3, D - 3], int(rng.integers(2, 8)))
-    if trees:
-        _trees(b, rng, [4, 4], [W - 4, D - 4], int(rng.integers(1, 7)))
-    return b.finish(
-        "square", seed, [1.5, 1.5, 1.2], [W - 1.5, D - 1.5, 10.0], {"width": W, "depth": D}
-    )
-
-
-def rubble(
-    rng: np.random.Generator, num: int = 900, radius: float = 6.0, size=(0.25, 0.9)
-) -> Scene:
-    """A heap of ``num`` small randomly oriented textured quads (no dominant planes, no
-    ground) in a ball of ``radius`` metres around (0, 0, radius); cameras stand outside."""
-    seed = int(rng.integers(1 << 31))
-    b = _Builder(rng)
-    shared = [b.texture("rubble", 20.0, 20.0, texel=0.02, max_tex=512) for _ in range(8)]
-    c = np.array([0.0, 0.0, radius])
-    for _ in range(num):
-        p = rng.normal(size=3)
-        p = c + p / np.linalg.norm(p) * radius * rng.random() ** (1 / 3)
-        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-        su, sv = rng.uniform(*size, 2)
-        t = shared[int(rng.integers(len(shared)))]
-        off = rng.uniform(0, 400, 2)
-        b.quad(
-            p - R[:, 0] * su / 2 - R[:, 1] * sv / 2,
-            R[:, 0] * su,
-            R[:, 1] * sv,
-            R[:, 2],
-            RUBBLE,
-            t,
-            tex_offset=off,
-        )
-    b.blockers.append(
-        np.stack([c - radius, [2 * radius, 0, 0], [0, 2 * radius, 0], [0, 0, 2 * radius]])
-    )
-    r = 2.0 * radius
-    return b.finish("rubble", seed, [-r, -r, 0.5], [r, r, 2 * radius + 4], {"radius": radius})
