@@ -7,9 +7,10 @@ rotations with the ground truth.
 
 The demo wing: this job (:func:`run_demo`, :func:`render_walk`) and the renderer it runs,
 procedural street scenes of textured planar quads with exact depth, normals and poses:
-``scene`` (the quad scene, its builder), ``textures`` (procedural and photo textures),
-``render`` (ray casting: image, depth, normals, plane ids), ``views`` (pinhole cameras,
-look-at poses, the walk along a street). World frame: metres, z up, ground z = 0; cameras
+``scene`` (the quad scene, its builder), ``street`` (the demo's street: facade rows,
+clutter, trees), ``textures`` (procedural and photo textures), ``render`` (ray casting:
+image, depth, normals, plane ids), ``views`` (pinhole cameras, look-at poses, the walk along
+a street). World frame: metres, z up, ground z = 0; cameras
 are pycolmap PINHOLE / SIMPLE_PINHOLE (COLMAP pixel convention); poses ``cam_from_world``
 pycolmap.Rigid3d (camera x right, y down, z forward). What only training, tests and
 benchmarks use (random views, view pairs and their ground truth, the corner, square and
@@ -31,7 +32,7 @@ from ..config import DEFAULT_DEPTH_MODEL
 from ..extraction import extract
 from ..geometry import rotation_angle_deg
 from .render import render
-from .scene import street
+from .street import street
 from .views import pinhole_camera, pitched, view_orbit
 
 logger = logging.getLogger(__name__)

@@ -40,7 +40,8 @@ Photos can replace procedural facade textures: ``street(rng, texture_dir=folder)
 from __future__ import annotations
 
 from rectified_colmap.demo.render import RenderResult, cast, render
-from rectified_colmap.demo.scene import KIND_NAMES, Scene, street
+from rectified_colmap.demo.scene import KIND_NAMES, Scene
+from rectified_colmap.demo.street import street
 from rectified_colmap.demo.textures import make_texture
 from rectified_colmap.demo.views import look_at, pinhole_camera, pitched, view_orbit
 

@@ -12,16 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from rectified_colmap.demo.render import RenderResult, render
-from rectified_colmap.demo.scene import (
-    RUBBLE,
-    Scene,
-    SceneBuilder,
-    add_clutter,
-    add_facade_row,
-    add_trees,
-    street,
-    texture_photos,
-)
+from rectified_colmap.demo.scene import RUBBLE, Scene, SceneBuilder, texture_photos
+from rectified_colmap.demo.street import add_clutter, add_facade_row, add_trees, street
 
 from .views import random_camera, random_view
 
