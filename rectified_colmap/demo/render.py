@@ -267,7 +267,7 @@ def _cloud_map(scene: Scene, h: int = 256, w: int = 1024) -> np.ndarray:
     """(h, w) float32 cloud density over (elevation 90 -> 0 deg, azimuth 0 -> 360 deg),
     periodic in azimuth, deterministic from the scene's seed; cover ``scene.clouds``."""
     if "clouds" not in scene._pyramids:
-        from .textures import value_noise
+        from .textures.blocks import value_noise
 
         rng = np.random.default_rng(scene.seed + 17)
         pad = w // 4
