@@ -190,59 +190,85 @@ def decorate(img: np.ndarray, rng, ppm, per_m2: float = 0.25) -> None:
     for _ in range(min(n, 400)):
         cx, cy = rng.uniform(0, w), rng.uniform(0, h)
         k = rng.random()
-        if k < 0.45:  # patch: a random polygon, lighter or darker than the wall
-            m = int(rng.integers(4, 9))
-            ang = np.sort(rng.uniform(0, 2 * np.pi, m))
-            rad = rng.uniform(0.15, 0.8) * ppm * rng.uniform(0.5, 1.0, m)
-            pts = np.stack([cx + rad * np.cos(ang), cy + rad * np.sin(ang)], 1).astype(np.int32)
-            base = img[int(min(cy, h - 1)), int(min(cx, w - 1))]
-            col = np.clip(base * rng.uniform(0.55, 1.5) + rng.normal(0, 0.05, 3), 0, 1)
-            cv2.fillPoly(img, [pts], tuple(map(float, col)), cv2.LINE_AA)
-        elif k < 0.65:  # plaque / small sign with text
-            pw, ph = rng.uniform(0.2, 0.8) * ppm, rng.uniform(0.1, 0.4) * ppm
-            x0, y0 = int(cx), int(cy)
-            cv2.rectangle(
-                img,
-                (x0, y0),
-                (int(x0 + pw), int(y0 + ph)),
-                tuple(map(float, random_colour(rng, 0.1, 0.95, 0.6))),
-                -1,
-            )
-            draw_text(img, rng, x0, y0, int(x0 + pw), int(y0 + ph))
-        elif k < 0.75:  # vent / AC unit: box with a few slats
-            pw, ph = rng.uniform(0.3, 0.9) * ppm, rng.uniform(0.2, 0.6) * ppm
-            x0, y0 = int(cx), int(cy)
-            c = random_colour(rng, 0.5, 0.95, 0.1)
-            cv2.rectangle(img, (x0, y0), (int(x0 + pw), int(y0 + ph)), tuple(map(float, c)), -1)
-            for yy in np.linspace(y0 + ph * 0.2, y0 + ph * 0.8, int(rng.integers(2, 5))):
-                cv2.line(
-                    img,
-                    (x0 + 2, int(yy)),
-                    (int(x0 + pw) - 2, int(yy)),
-                    tuple(map(float, c * 0.6)),
-                    1,
-                )
-        elif k < 0.85:  # pipe / cable
-            L = rng.uniform(0.5, 4.0) * ppm
-            a = rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.05)
-            p1 = (int(cx), int(cy))
-            p2 = (int(cx + L * np.cos(a)), int(cy + L * np.sin(a)))
-            cv2.line(
-                img,
-                p1,
-                p2,
-                tuple(map(float, random_colour(rng, 0.1, 0.8, 0.3))),
-                max(1, int(rng.uniform(0.02, 0.1) * ppm)),
-                cv2.LINE_AA,
-            )
-        else:  # graffiti tag / stroke
-            pts = np.cumsum(rng.normal(0, 0.15 * ppm, (int(rng.integers(3, 8)), 2)), 0)
-            pts = (pts + [cx, cy]).astype(np.int32)
-            cv2.polylines(
-                img,
-                [pts],
-                False,
-                tuple(map(float, random_colour(rng, 0, 1, 1))),
-                max(1, int(rng.uniform(0.02, 0.05) * ppm)),
-                cv2.LINE_AA,
-            )
+        if k < 0.45:
+            _patch(img, rng, ppm, cx, cy)
+        elif k < 0.65:
+            _plaque(img, rng, ppm, cx, cy)
+        elif k < 0.75:
+            _vent(img, rng, ppm, cx, cy)
+        elif k < 0.85:
+            _pipe(img, rng, ppm, cx, cy)
+        else:
+            _tag(img, rng, ppm, cx, cy)
+
+
+def _patch(img: np.ndarray, rng, ppm, cx: float, cy: float) -> None:
+    """A repaired patch around (cx, cy): a random polygon, lighter or darker than the wall."""
+    h, w = img.shape[:2]
+    m = int(rng.integers(4, 9))
+    ang = np.sort(rng.uniform(0, 2 * np.pi, m))
+    rad = rng.uniform(0.15, 0.8) * ppm * rng.uniform(0.5, 1.0, m)
+    pts = np.stack([cx + rad * np.cos(ang), cy + rad * np.sin(ang)], 1).astype(np.int32)
+    base = img[int(min(cy, h - 1)), int(min(cx, w - 1))]
+    col = np.clip(base * rng.uniform(0.55, 1.5) + rng.normal(0, 0.05, 3), 0, 1)
+    cv2.fillPoly(img, [pts], tuple(map(float, col)), cv2.LINE_AA)
+
+
+def _plaque(img: np.ndarray, rng, ppm, cx: float, cy: float) -> None:
+    """A plaque / small sign with text, its top-left corner at (cx, cy)."""
+    pw, ph = rng.uniform(0.2, 0.8) * ppm, rng.uniform(0.1, 0.4) * ppm
+    x0, y0 = int(cx), int(cy)
+    cv2.rectangle(
+        img,
+        (x0, y0),
+        (int(x0 + pw), int(y0 + ph)),
+        tuple(map(float, random_colour(rng, 0.1, 0.95, 0.6))),
+        -1,
+    )
+    draw_text(img, rng, x0, y0, int(x0 + pw), int(y0 + ph))
+
+
+def _vent(img: np.ndarray, rng, ppm, cx: float, cy: float) -> None:
+    """A vent / AC unit, its top-left corner at (cx, cy): a box with a few slats."""
+    pw, ph = rng.uniform(0.3, 0.9) * ppm, rng.uniform(0.2, 0.6) * ppm
+    x0, y0 = int(cx), int(cy)
+    c = random_colour(rng, 0.5, 0.95, 0.1)
+    cv2.rectangle(img, (x0, y0), (int(x0 + pw), int(y0 + ph)), tuple(map(float, c)), -1)
+    for yy in np.linspace(y0 + ph * 0.2, y0 + ph * 0.8, int(rng.integers(2, 5))):
+        cv2.line(
+            img,
+            (x0 + 2, int(yy)),
+            (int(x0 + pw) - 2, int(yy)),
+            tuple(map(float, c * 0.6)),
+            1,
+        )
+
+
+def _pipe(img: np.ndarray, rng, ppm, cx: float, cy: float) -> None:
+    """A pipe / cable from (cx, cy), about horizontal or vertical."""
+    L = rng.uniform(0.5, 4.0) * ppm
+    a = rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.05)
+    p1 = (int(cx), int(cy))
+    p2 = (int(cx + L * np.cos(a)), int(cy + L * np.sin(a)))
+    cv2.line(
+        img,
+        p1,
+        p2,
+        tuple(map(float, random_colour(rng, 0.1, 0.8, 0.3))),
+        max(1, int(rng.uniform(0.02, 0.1) * ppm)),
+        cv2.LINE_AA,
+    )
+
+
+def _tag(img: np.ndarray, rng, ppm, cx: float, cy: float) -> None:
+    """A graffiti tag / stroke from (cx, cy)."""
+    pts = np.cumsum(rng.normal(0, 0.15 * ppm, (int(rng.integers(3, 8)), 2)), 0)
+    pts = (pts + [cx, cy]).astype(np.int32)
+    cv2.polylines(
+        img,
+        [pts],
+        False,
+        tuple(map(float, random_colour(rng, 0, 1, 1))),
+        max(1, int(rng.uniform(0.02, 0.05) * ppm)),
+        cv2.LINE_AA,
+    )
