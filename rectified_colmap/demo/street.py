@@ -70,25 +70,31 @@ def add_facade_row(
                 t = b.texture("facade", su, sv)
                 b.q["tex"][i], b.q["texel"][i] = t
         if rng.random() < relief_prob:  # balconies / relief boxes on the front
-            floor_h = rng.uniform(2.8, 3.8)
-            for _ in range(int(rng.integers(1, 7))):
-                bw = rng.uniform(1.2, min(4.0, w - 0.5)) if w > 1.8 else w * 0.6
-                a0 = rng.uniform(0.2, max(0.25, w - bw - 0.2))
-                z0 = floor_h * int(rng.integers(1, max(2, int(hgt / floor_h))))
-                if z0 + 1.2 > hgt:
-                    continue
-                d = rng.uniform(0.3, 1.3)
-                bh = rng.uniform(0.25, 1.1)
-                corner = front0 + along * a0 + UP * z0
-                b.box(
-                    corner,
-                    along * bw,
-                    inward * d,
-                    bh,
-                    kinds=(RELIEF,) * 5,
-                    textures=("plaster", "stone", "plaster", "stone", "plaster"),
-                )
+            _add_relief(b, rng, front0, along, inward, w, hgt)
         s += w
+
+
+def _add_relief(b: SceneBuilder, rng, front0, along, inward, w: float, hgt: float) -> None:
+    """1-6 balconies / relief boxes on the front of a building ``w`` wide and ``hgt`` high
+    whose front starts at ``front0``, at floor heights, sticking out toward ``inward``."""
+    floor_h = rng.uniform(2.8, 3.8)
+    for _ in range(int(rng.integers(1, 7))):
+        bw = rng.uniform(1.2, min(4.0, w - 0.5)) if w > 1.8 else w * 0.6
+        a0 = rng.uniform(0.2, max(0.25, w - bw - 0.2))
+        z0 = floor_h * int(rng.integers(1, max(2, int(hgt / floor_h))))
+        if z0 + 1.2 > hgt:
+            continue
+        d = rng.uniform(0.3, 1.3)
+        bh = rng.uniform(0.25, 1.1)
+        corner = front0 + along * a0 + UP * z0
+        b.box(
+            corner,
+            along * bw,
+            inward * d,
+            bh,
+            kinds=(RELIEF,) * 5,
+            textures=("plaster", "stone", "plaster", "stone", "plaster"),
+        )
 
 
 def add_clutter(b: SceneBuilder, rng, lo, hi, n: int) -> None:

@@ -171,37 +171,13 @@ def view_pair(
         X, n = pts[0], scene.normal[q[0]]
         if X[2] > max_point_height:
             continue
-        # candidate eyes on the outward side of the plane
-        m = 3000
-        d = rng.normal(size=(m, 3))
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        d *= np.sign(d @ n)[:, None]
-        d = d[d @ n > np.cos(np.deg2rad(max_incidence_deg))]
-        eyes = X + d * rng.uniform(*dist_range, (len(d), 1))
-        ok = (eyes[:, 2] >= height_range[0]) & (eyes[:, 2] <= height_range[1])
-        eyes, d = eyes[ok], d[ok]
-        ok = scene.in_free_space(eyes)
-        eyes, d = eyes[ok], d[ok]
+        eyes, d = _candidate_eyes(scene, rng, X, n, dist_range, height_range, max_incidence_deg)
         if len(eyes) < 2:
             continue
-        ok = visible(scene, eyes, X)
-        eyes, d = eyes[ok], d[ok]
-        if len(eyes) < 2:
+        pick = _pick_pair(rng, eyes, d, X, (cos_lo, cos_hi), max_scale_ratio)
+        if pick is None:
             continue
-        i = int(rng.integers(len(eyes)))
-        c = d @ d[i]
-        dist = np.linalg.norm(eyes - X, axis=1)
-        ratio = dist / dist[i]
-        js = np.flatnonzero(
-            (c >= cos_lo)
-            & (c <= cos_hi)
-            & (ratio < max_scale_ratio)
-            & (ratio > 1 / max_scale_ratio)
-        )
-        if len(js) == 0:
-            continue
-        j = int(rng.choice(js))
-        poses = [_aim(e, X, camera, rng, jitter_px) for e in (eyes[i], eyes[j])]
+        poses = [_aim(eyes[k], X, camera, rng, jitter_px) for k in pick]
         if min_covisible > 0:
             r0, r1 = (coarse_render(scene, camera, p) for p in poses)
             if (
@@ -211,6 +187,46 @@ def view_pair(
                 continue
         return poses[0], poses[1], X
     raise RuntimeError(f"view_pair: no pair found in scene {scene.name} for target {target}")
+
+
+def _candidate_eyes(
+    scene: Scene, rng, X, n, dist_range, height_range, max_incidence_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate camera centres on the outward side of the plane through ``X`` with unit
+    normal ``n``, within ``max_incidence_deg`` of it, ``dist_range`` away and in
+    ``height_range``, in free space; when at least two are left, only those that see ``X``.
+    Returns (eyes (P, 3), unit directions from X to them (P, 3))."""
+    m = 3000
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d *= np.sign(d @ n)[:, None]
+    d = d[d @ n > np.cos(np.deg2rad(max_incidence_deg))]
+    eyes = X + d * rng.uniform(*dist_range, (len(d), 1))
+    ok = (eyes[:, 2] >= height_range[0]) & (eyes[:, 2] <= height_range[1])
+    eyes, d = eyes[ok], d[ok]
+    ok = scene.in_free_space(eyes)
+    eyes, d = eyes[ok], d[ok]
+    if len(eyes) < 2:
+        return eyes, d
+    ok = visible(scene, eyes, X)
+    return eyes[ok], d[ok]
+
+
+def _pick_pair(rng, eyes, d, X, cos_range, max_scale_ratio: float) -> tuple[int, int] | None:
+    """A random candidate ``i`` and a random partner ``j`` whose direction to ``X`` has a
+    cosine with ``i``'s in ``cos_range`` (lo, hi) and whose distance to ``X`` is within a
+    factor ``max_scale_ratio`` of ``i``'s; None when ``i`` has no partner."""
+    cos_lo, cos_hi = cos_range
+    i = int(rng.integers(len(eyes)))
+    c = d @ d[i]
+    dist = np.linalg.norm(eyes - X, axis=1)
+    ratio = dist / dist[i]
+    js = np.flatnonzero(
+        (c >= cos_lo) & (c <= cos_hi) & (ratio < max_scale_ratio) & (ratio > 1 / max_scale_ratio)
+    )
+    if len(js) == 0:
+        return None
+    return i, int(rng.choice(js))
 
 
 def _aim(eye, X, camera, rng, jitter_px, max_roll_deg: float = 5.0) -> pycolmap.Rigid3d:
