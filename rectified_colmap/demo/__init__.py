@@ -10,11 +10,11 @@ procedural street scenes of textured planar quads with exact depth, normals and 
 ``scene`` (the quad scene, its builder), ``street`` (the demo's street: facade rows,
 clutter, trees), ``textures`` (procedural and photo textures), ``render`` (ray casting:
 image, depth, normals, plane ids), ``views`` (pinhole cameras, look-at poses, the walk along
-a street). World frame: metres, z up, ground z = 0; cameras
-are pycolmap PINHOLE / SIMPLE_PINHOLE (COLMAP pixel convention); poses ``cam_from_world``
-pycolmap.Rigid3d (camera x right, y down, z forward). What only training, tests and
-benchmarks use (random views, view pairs and their ground truth, the corner, square and
-rubble scenes, random training samples, line drawings, one textured plane) is research code:
+a street). World frame: metres, z up, ground z = 0; cameras are pycolmap PINHOLE /
+SIMPLE_PINHOLE (COLMAP pixel convention); poses ``cam_from_world`` pycolmap.Rigid3d (camera
+x right, y down, z forward). What only training, tests and benchmarks use (random views,
+view pairs and their ground truth, the corner, square and rubble scenes, random training
+samples, line drawings, one textured plane) is research code:
 ``rectified_colmap_research.synth`` (research/, not installed).
 """
 
