@@ -4,7 +4,7 @@ import sqlite3
 import cv2
 import pytest
 
-from rectified_colmap.synth.planar import look_at, plane_view, textured_image  # noqa: F401
+from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image  # noqa: F401
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 cv2.setNumThreads(1)

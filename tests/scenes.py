@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.eval.pairs import Pair
 
 
@@ -46,6 +46,14 @@ def street_orbit(
     camera = synth.pinhole_camera(width, height, 0.7 * width)
     poses = synth.view_orbit(scene, num, rng, camera=camera)
     return [_view(scene, camera, synth.pitched(p, pitch_down_deg)) for p in poses]
+
+
+def dominant_fraction(normals_world: np.ndarray, max_angle_deg: float = 15.0) -> float:
+    """Largest fraction of normals within max_angle of one direction (or its antipode)."""
+    n = normals_world / np.linalg.norm(normals_world, axis=1, keepdims=True)
+    cands = n[np.random.default_rng(0).choice(len(n), 200)]
+    c = np.abs(n @ cands.T) > np.cos(np.deg2rad(max_angle_deg))
+    return float(c.mean(0).max())
 
 
 def to_pair(view0, view1, name0: str = "0", name1: str = "1") -> Pair:

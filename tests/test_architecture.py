@@ -51,7 +51,6 @@ LEVELS = {
     "pipeline": 9,
     "viz": 9,
     "extraction": 10,
-    "synth": 11,
     "eval": 11,
     "training": 11,
     "demo": 11,

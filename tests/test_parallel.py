@@ -25,8 +25,9 @@ import pytest
 from rectified_colmap import parallel
 from rectified_colmap.extraction import extract
 from rectified_colmap.io import hloc_h5
-from rectified_colmap.synth.planar import look_at, plane_view, textured_image
+from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
 
+ROOT = Path(__file__).resolve().parent.parent
 K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
 PARAMS = "300,300,160,120"
 NUM_IMAGES = 4
@@ -51,7 +52,10 @@ def _run_python(
     args: list[str], timeout: float, cwd: Path, stdin: str | None = None
 ) -> tuple[subprocess.CompletedProcess, float]:
     """``python *args`` (fed ``stdin``) in its own process group; on timeout the whole
-    group (workers included) is killed and the test fails."""
+    group (workers included) is killed and the test fails. research/ is on its path as
+    pytest's pythonpath puts it here (the stress script's textured plane is research code)."""
+    paths = [str(ROOT / "research"), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in paths if p))
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, *args],
@@ -61,6 +65,7 @@ def _run_python(
         text=True,
         cwd=cwd,
         start_new_session=True,
+        env=env,
     )
     try:
         out, err = proc.communicate(stdin, timeout=timeout)
@@ -88,7 +93,7 @@ def use_thread_pools(rng):
         cv2.GaussianBlur(big, (21, 21), 3)
         cv2.resize(big, (700, 700), interpolation=cv2.INTER_AREA)
     from rectified_colmap.depth.registry import load_depth_source
-    from rectified_colmap.synth.planar import textured_image
+    from rectified_colmap_research.synth.planar import textured_image
 
     net = load_depth_source("rectsift-lite0", num_threads=4)
     import pycolmap

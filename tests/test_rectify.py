@@ -299,7 +299,7 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
     from rectified_colmap.geometry import scaled_size
     from rectified_colmap.pipeline import extract_image, features_on_top
     from rectified_colmap.sift import plain_sift
-    from rectified_colmap.synth.planar import look_at, plane_view, textured_image
+    from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
     from rectified_colmap.views import plan_views
 
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])

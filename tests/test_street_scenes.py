@@ -175,7 +175,7 @@ def test_scene_without_dominant_planes_matches_like_plain_sift():
     SIFT must match as plain SIFT does (same successes, correct matches within 15%)."""
     import pycolmap
 
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
     from tests.scenes import _view
 
     totals = {"plain": 0, "rect": 0}

@@ -124,7 +124,7 @@ def keypoints_per_image(database: Path) -> float:
 def prepare_images(args, folder: Path) -> list[str]:
     """The benchmark's images in ``folder`` (copies, resized copies or renders)."""
     if args.synthetic:
-        from rectified_colmap import synth
+        from rectified_colmap_research import synth
 
         rng = np.random.default_rng(args.seed)
         w, h = (int(v) for v in args.size.split("x"))

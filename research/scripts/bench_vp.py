@@ -29,8 +29,8 @@ import pycolmap
 
 from rectified_colmap.camera import make_camera
 from rectified_colmap.config import VpConf
-from rectified_colmap.synth.planar import look_at, plane_view, textured_image
-from rectified_colmap.synth.lines import axis_errors_deg, render_street, rot, street_camera
+from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
+from rectified_colmap_research.synth.lines import axis_errors_deg, render_street, rot, street_camera
 from rectified_colmap.viz import draw_directions, draw_segments, save_png
 from rectified_colmap.vp.fusion import refine_directions
 from rectified_colmap_research.line_planes import manhattan_from_image
@@ -144,7 +144,7 @@ def strecha(scene: Path, conf: VpConf, viz: Path | None):
 
 def _trust_sets(data: Path, num_textures: int):
     """Yields (set name, name, gray (H, W) uint8, camera, GT axes (3, 3) rows or None)."""
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
 
     K = np.array([[400.0, 0, 200], [0, 400, 150], [0, 0, 1]])
     cam = make_camera("PINHOLE", [400.0, 400.0, 200.0, 150.0], 400, 300)

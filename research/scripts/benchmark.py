@@ -107,7 +107,7 @@ def reset_peak() -> None:
 
 
 def synthetic_inputs(n: int, width: int, height: int, seed: int):
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
 
     rng = np.random.default_rng(seed)
     for i in range(n):

@@ -1,9 +1,10 @@
 #!/usr/bin/env python
 """Vanishing points vs a mediocre depth network on rendered street pairs (docs/vp.md).
 
-Pairs: rectified_colmap.synth street scenes, two views of one facade or ground point whose
-viewing directions are ``--min_deg``-``--max_deg`` apart (synth.view_pair), 480x360,
-focal 0.9 x width, targets alternating facade / ground. Exact depth, normals and poses.
+Pairs: rectified_colmap_research.synth street scenes, two views of one facade or ground
+point whose viewing directions are ``--min_deg``-``--max_deg`` apart (synth.view_pair),
+480x360, focal 0.9 x width, targets alternating facade / ground. Exact depth, normals and
+poses.
 
 Depth "network" = GT depth corrupted per image, independently in the two views:
 - a smooth tilt of the inverse depth, 1/z' = 1/z + g . (x_n, y_n) with (x_n, y_n) the
@@ -70,7 +71,7 @@ import cv2
 import numpy as np
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.eval.config import EvalConf
 from rectified_colmap.depth import DepthMap

@@ -56,8 +56,8 @@ def parse_args(argv=None):
         "--tree_prob",
         type=float,
         default=0.0,
-        help="fraction of rendered scenes with trees (rectified_colmap.synth; use a new "
-        "--pool_dir: existing views are reused as they are)",
+        help="fraction of rendered scenes with trees (rectified_colmap_research.synth; use a "
+        "new --pool_dir: existing views are reused as they are)",
     )
     p.add_argument(
         "--cloud_prob", type=float, default=0.0, help="fraction of rendered skies with clouds"

@@ -12,7 +12,7 @@ from rectified_colmap_research.evaluation.asift import (
 from rectified_colmap.conventions import to_opencv_points
 from rectified_colmap.eval.matching import match_ratio
 from rectified_colmap.io.hloc_h5 import rootsift_unit
-from rectified_colmap.synth.planar import textured_image
+from rectified_colmap_research.synth.planar import textured_image
 
 
 def test_descriptors_become_colmap_rootsift_bytes():

@@ -14,7 +14,7 @@ from rectified_colmap_research.line_planes import (
 )
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.features import keypoints_in_mask
 from rectified_colmap.sift import detect_sift
@@ -112,7 +112,7 @@ def test_depth_free_without_lines_is_exactly_plain_sift():
 
 
 def test_manhattan_from_image_trusts_a_rendered_street():
-    from rectified_colmap.synth.lines import axis_errors_deg, render_street, street_camera
+    from rectified_colmap_research.synth.lines import axis_errors_deg, render_street, street_camera
     from rectified_colmap_research.vp_drawing import draw_directions, draw_segments
 
     rng = np.random.default_rng(4)

@@ -8,7 +8,7 @@ import pycolmap
 import pytest
 from tests.scenes import plane_depth, street_views_folder
 
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap_research.training import real
 from rectified_colmap_research.training.sky import NOT_SKY, SKY, UNKNOWN
 

@@ -220,7 +220,7 @@ def test_demo_result_keys_are_explained():
     from rectified_colmap.demo import RESULT_KEYS
 
     assert "max_rotation_error_deg" in RESULT_KEYS and "reused_images" in RESULT_KEYS
-    source = (ROOT / "rectified_colmap" / "demo.py").read_text()
+    source = (ROOT / "rectified_colmap" / "demo" / "__init__.py").read_text()
     for key in RESULT_KEYS:  # every key of the result is explained, and only those
         assert f'"{key}"' in source.split("RESULT_KEYS")[0]
 

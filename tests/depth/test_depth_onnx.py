@@ -218,7 +218,7 @@ def test_contract_round_trip_and_errors(tmp_path):
 def test_embedded_network_gives_no_depth_on_sky():
     """The shipped network's sky head (docs/training.md, stage 3): on held-out renders
     (seeds never in a training pool) the true sky has no depth, surfaces keep theirs."""
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
     from rectified_colmap.depth.registry import model_path
 
     src = OnnxDepthSource(model_path("rectsift-lite0"), num_threads=1)

@@ -18,7 +18,7 @@ from rectified_colmap.vp.segments import (
     sin_errors,
 )
 from tests.conftest import look_at, plane_view, textured_image
-from rectified_colmap.synth.lines import (
+from rectified_colmap_research.synth.lines import (
     axis_errors_deg,
     project_segments,  # noqa: F401
     random_rotation,

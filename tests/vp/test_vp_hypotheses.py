@@ -10,7 +10,7 @@ from rectified_colmap.depth import DepthMap
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.geometry import line_angle_deg
 from rectified_colmap.pipeline import extract_image
-from rectified_colmap.synth.lines import project_segments
+from rectified_colmap_research.synth.lines import project_segments
 from rectified_colmap.vp.hypotheses import (
     VanishingPoints,
     free_vanishing_points,

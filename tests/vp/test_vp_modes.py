@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.pipeline import with_vanishing_points
 from rectified_colmap.planes import Patch, detect_planes

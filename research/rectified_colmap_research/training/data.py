@@ -14,8 +14,8 @@ augmentation (random zoom-crop, horizontal flip) keeps K, depth, normals and fra
 photometric augmentation (exposure, gamma, colour, saturation, haze, blur, noise, JPEG)
 touches only the image.
 
-Views are rendered by :func:`render_pool` with ``rectified_colmap.synth`` (street, corner and
-square scenes, procedural or photo facades, random cameras: :func:`synth_sample`).
+Views are rendered by :func:`render_pool` with ``rectified_colmap_research.synth`` (street,
+corner and square scenes, procedural or photo facades, random cameras: :func:`synth_sample`).
 """
 
 from __future__ import annotations
@@ -26,10 +26,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rectified_colmap import synth
+from rectified_colmap_research import synth
 from rectified_colmap.conventions import to_opencv_homography
 from rectified_colmap.parallel import context
-from rectified_colmap.synth.render import pinhole_K
+from rectified_colmap.demo.render import pinhole_K
 
 logger = logging.getLogger(__name__)
 
@@ -47,10 +47,10 @@ def synth_sample(
     tree_prob: float = 0.0,
     cloud_prob: float = 0.0,
 ) -> dict:
-    """One training view from ``rectified_colmap.synth.random_sample`` in the pool format
-    (see the module docstring), plus ``R`` (3, 3): cam_from_world rotation (the scenes are
-    built on the world axes, so ``R.T``'s rows are the true dominant directions; trees,
-    with ``tree_prob``, have no direction)."""
+    """One training view from ``rectified_colmap_research.synth.random_sample`` in the pool
+    format (see the module docstring), plus ``R`` (3, 3): cam_from_world rotation (the
+    scenes are built on the world axes, so ``R.T``'s rows are the true dominant directions;
+    trees, with ``tree_prob``, have no direction)."""
     r = synth.random_sample(
         np.random.default_rng(seed),
         width,

@@ -139,7 +139,7 @@ def evaluate_outdoor(
 ) -> dict:
     """Tree, sky and other pixels labelled planar (module docstring) -> pooled fractions.
     ``depth_for(rgb)`` -> DepthMap of one render."""
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
     from rectified_colmap.depth import DepthMap
     from .evaluate_sky import plane_labels, upsample_nearest
 

@@ -1,7 +1,9 @@
-"""Cameras and poses for synthetic scenes, and ground-truth helpers.
+"""Random views, view pairs and ground truth between views of the demo wing's scenes
+(rectified_colmap.demo), for training, tests and benchmarks.
 
 Poses are ``cam_from_world`` pycolmap.Rigid3d (camera x right, y down, z forward; world z
-up). Cameras are pycolmap PINHOLE cameras in the COLMAP pixel convention.
+up). Cameras are pycolmap PINHOLE cameras in the COLMAP pixel convention. Pinhole cameras,
+look-at poses and the walk along a street are rectified_colmap.demo.views.
 """
 
 from __future__ import annotations
@@ -11,29 +13,13 @@ import logging
 import numpy as np
 import pycolmap
 
-from .render import RenderResult, cast, pinhole_K, raycast
-from .scene import FACADE, GROUND, UP, WALL, Scene
+from rectified_colmap.demo.render import RenderResult, pinhole_K
+from rectified_colmap.demo.scene import FACADE, GROUND, UP, WALL, Scene
+from rectified_colmap.demo.views import coarse_render, coverage, look_at, pinhole_camera
 
 logger = logging.getLogger(__name__)
 
 TARGET_KINDS = {"facade": (FACADE, WALL), "ground": (GROUND,), "any": None}
-
-
-def pinhole_camera(
-    width: int,
-    height: int,
-    focal: float | None = None,
-    cx: float | None = None,
-    cy: float | None = None,
-) -> pycolmap.Camera:
-    """PINHOLE camera; default focal 1.0 x width, principal point at the image centre."""
-    f = float(focal if focal is not None else width)
-    return pycolmap.Camera(
-        model="PINHOLE",
-        width=int(width),
-        height=int(height),
-        params=[f, f, width / 2.0 if cx is None else cx, height / 2.0 if cy is None else cy],
-    )
 
 
 def random_camera(
@@ -54,33 +40,6 @@ def random_camera(
     )
 
 
-def rigid(R_cam_from_world: np.ndarray, t: np.ndarray) -> pycolmap.Rigid3d:
-    return pycolmap.Rigid3d(
-        pycolmap.Rotation3d(np.asarray(R_cam_from_world, float)), np.asarray(t, float).reshape(3)
-    )
-
-
-def look_at(eye, target, up=UP, roll_deg: float = 0.0) -> pycolmap.Rigid3d:
-    """cam_from_world of a camera at ``eye`` looking at ``target`` (image y down = -up),
-    rotated by ``roll_deg`` about its optical axis."""
-    eye, target, up = (np.asarray(x, float) for x in (eye, target, up))
-    z = target - eye
-    if np.linalg.norm(z) < 1e-9:
-        raise ValueError("look_at: eye and target coincide")
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-6:  # looking straight up/down: any right vector
-        x = np.cross(z, [1.0, 0, 0]) if abs(z[0]) < 0.9 else np.cross(z, [0, 1.0, 0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])  # rows: camera axes in world = cam_from_world rotation
-    if roll_deg:
-        a = np.deg2rad(roll_deg)
-        Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-        R = Rz @ R
-    return rigid(R, -R @ eye)
-
-
 def camera_center(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
     m = np.asarray(cam_from_world.matrix())
     return -m[:, :3].T @ m[:, 3]
@@ -89,6 +48,30 @@ def camera_center(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
 def viewing_direction(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
     """World direction of the optical axis."""
     return np.asarray(cam_from_world.matrix())[2, :3].copy()
+
+
+def raycast(scene: Scene, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hits of world rays (P, 3) origins and directions: ray parameter t (P,)
+    (inf: none; in units of |dir|) and quad id (P,) (-1)."""
+    origins = np.asarray(origins, float).reshape(-1, 3)
+    dirs = np.asarray(dirs, float).reshape(-1, 3)
+    nrm = np.cross(scene.eu, scene.ev)
+    best = np.full(len(dirs), np.inf)
+    ids = np.full(len(dirs), -1, np.int32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = dirs @ nrm.T  # (P, N)
+        rel = scene.origin[None] - origins[:, None]  # (P, N, 3)
+        tt = np.einsum("pnk,nk->pn", rel, nrm) / den
+        hit = origins[:, None] + tt[..., None] * dirs[:, None] - scene.origin[None]
+        u = np.einsum("pnk,nk->pn", hit, scene.eu)
+        v = np.einsum("pnk,nk->pn", hit, scene.ev)
+        ok = (tt > 1e-6) & (u >= 0) & (u <= scene.size[:, 0]) & (v >= 0) & (v <= scene.size[:, 1])
+    tt = np.where(ok, tt, np.inf)
+    if tt.shape[1]:
+        ids = np.argmin(tt, 1).astype(np.int32)
+        best = tt[np.arange(len(dirs)), ids]
+        ids[~np.isfinite(best)] = -1
+    return best, ids
 
 
 def visible(scene: Scene, eyes: np.ndarray, point: np.ndarray, tol: float = 0.02) -> np.ndarray:
@@ -100,33 +83,6 @@ def visible(scene: Scene, eyes: np.ndarray, point: np.ndarray, tol: float = 0.02
         t, _ = raycast(scene, e, point - e)
         out[s : s + 256] = t > 1 - tol
     return out
-
-
-def coarse_render(
-    scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d, size: int = 48
-) -> RenderResult:
-    """Geometry only (no image) on a grid of max side ``size`` covering the same view."""
-    K = pinhole_K(camera)
-    s = size / max(camera.width, camera.height)
-    W, H = max(4, int(round(camera.width * s))), max(3, int(round(camera.height * s)))
-    Ks = K.copy()
-    Ks[0] *= W / camera.width
-    Ks[1] *= H / camera.height
-    m = np.asarray(pose.matrix())
-    d, q = cast(scene, Ks, m[:, :3], m[:, 3], W, H)
-    small = pinhole_camera(W, H, Ks[0, 0], Ks[0, 2], Ks[1, 2])
-    small.params = [Ks[0, 0], Ks[1, 1], Ks[0, 2], Ks[1, 2]]
-    depth = np.where(q >= 0, d, np.nan).astype(np.float32)
-    return RenderResult(None, depth, None, q, small, pose)
-
-
-def _coverage(
-    scene: Scene, camera: pycolmap.Camera, pose: pycolmap.Rigid3d, size: int = 40
-) -> tuple[float, float]:
-    """(fraction of pixels hitting a surface, min depth) on a coarse grid."""
-    r = coarse_render(scene, camera, pose, size)
-    hit = r.plane_id >= 0
-    return float(hit.mean()), float(np.nanmin(r.depth)) if hit.any() else np.inf
 
 
 def random_view(
@@ -170,7 +126,7 @@ def random_view(
         dist = np.linalg.norm(target - eye)
         target = target + UP * dist * np.tan(np.deg2rad(rng.uniform(-1, 1) * max_pitch_jitter_deg))
         pose = look_at(eye, target, roll_deg=rng.uniform(-1, 1) * max_roll_deg)
-        cov, dmin = _coverage(scene, camera, pose)
+        cov, dmin = coverage(scene, camera, pose)
         if cov >= min_coverage and dmin >= min_depth:
             return pose
         if dmin >= min_depth and cov > best_cov:
@@ -215,37 +171,13 @@ def view_pair(
         X, n = pts[0], scene.normal[q[0]]
         if X[2] > max_point_height:
             continue
-        # candidate eyes on the outward side of the plane
-        m = 3000
-        d = rng.normal(size=(m, 3))
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        d *= np.sign(d @ n)[:, None]
-        d = d[d @ n > np.cos(np.deg2rad(max_incidence_deg))]
-        eyes = X + d * rng.uniform(*dist_range, (len(d), 1))
-        ok = (eyes[:, 2] >= height_range[0]) & (eyes[:, 2] <= height_range[1])
-        eyes, d = eyes[ok], d[ok]
-        ok = scene.in_free_space(eyes)
-        eyes, d = eyes[ok], d[ok]
+        eyes, d = _candidate_eyes(scene, rng, X, n, dist_range, height_range, max_incidence_deg)
         if len(eyes) < 2:
             continue
-        ok = visible(scene, eyes, X)
-        eyes, d = eyes[ok], d[ok]
-        if len(eyes) < 2:
+        pick = _pick_pair(rng, eyes, d, X, (cos_lo, cos_hi), max_scale_ratio)
+        if pick is None:
             continue
-        i = int(rng.integers(len(eyes)))
-        c = d @ d[i]
-        dist = np.linalg.norm(eyes - X, axis=1)
-        ratio = dist / dist[i]
-        js = np.flatnonzero(
-            (c >= cos_lo)
-            & (c <= cos_hi)
-            & (ratio < max_scale_ratio)
-            & (ratio > 1 / max_scale_ratio)
-        )
-        if len(js) == 0:
-            continue
-        j = int(rng.choice(js))
-        poses = [_aim(e, X, camera, rng, jitter_px) for e in (eyes[i], eyes[j])]
+        poses = [_aim(eyes[k], X, camera, rng, jitter_px) for k in pick]
         if min_covisible > 0:
             r0, r1 = (coarse_render(scene, camera, p) for p in poses)
             if (
@@ -255,6 +187,46 @@ def view_pair(
                 continue
         return poses[0], poses[1], X
     raise RuntimeError(f"view_pair: no pair found in scene {scene.name} for target {target}")
+
+
+def _candidate_eyes(
+    scene: Scene, rng, X, n, dist_range, height_range, max_incidence_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate camera centres on the outward side of the plane through ``X`` with unit
+    normal ``n``, within ``max_incidence_deg`` of it, ``dist_range`` away and in
+    ``height_range``, in free space; when at least two are left, only those that see ``X``.
+    Returns (eyes (P, 3), unit directions from X to them (P, 3))."""
+    m = 3000
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d *= np.sign(d @ n)[:, None]
+    d = d[d @ n > np.cos(np.deg2rad(max_incidence_deg))]
+    eyes = X + d * rng.uniform(*dist_range, (len(d), 1))
+    ok = (eyes[:, 2] >= height_range[0]) & (eyes[:, 2] <= height_range[1])
+    eyes, d = eyes[ok], d[ok]
+    ok = scene.in_free_space(eyes)
+    eyes, d = eyes[ok], d[ok]
+    if len(eyes) < 2:
+        return eyes, d
+    ok = visible(scene, eyes, X)
+    return eyes[ok], d[ok]
+
+
+def _pick_pair(rng, eyes, d, X, cos_range, max_scale_ratio: float) -> tuple[int, int] | None:
+    """A random candidate ``i`` and a random partner ``j`` whose direction to ``X`` has a
+    cosine with ``i``'s in ``cos_range`` (lo, hi) and whose distance to ``X`` is within a
+    factor ``max_scale_ratio`` of ``i``'s; None when ``i`` has no partner."""
+    cos_lo, cos_hi = cos_range
+    i = int(rng.integers(len(eyes)))
+    c = d @ d[i]
+    dist = np.linalg.norm(eyes - X, axis=1)
+    ratio = dist / dist[i]
+    js = np.flatnonzero(
+        (c >= cos_lo) & (c <= cos_hi) & (ratio < max_scale_ratio) & (ratio > 1 / max_scale_ratio)
+    )
+    if len(js) == 0:
+        return None
+    return i, int(rng.choice(js))
 
 
 def _aim(eye, X, camera, rng, jitter_px, max_roll_deg: float = 5.0) -> pycolmap.Rigid3d:
@@ -267,54 +239,6 @@ def _aim(eye, X, camera, rng, jitter_px, max_roll_deg: float = 5.0) -> pycolmap.
     ray = np.array([-off[0] / K[0, 0], -off[1] / K[1, 1], 1.0])
     new_target = eye + R.T @ ray
     return look_at(eye, new_target, up=R.T @ np.array([0, -1.0, 0]))
-
-
-def view_orbit(
-    scene: Scene,
-    n: int = 8,
-    rng: np.random.Generator | None = None,
-    step: float = 1.2,
-    height: float = 1.7,
-    yaw_deg=(25.0, 55.0),
-    camera: pycolmap.Camera | None = None,
-    min_depth: float = 2.0,
-    tries: int = 50,
-) -> list[pycolmap.Rigid3d]:
-    """A walk along a street (or along one side of a corner/square scene): ``n`` poses
-    ``step`` metres apart in free space, looking obliquely (``yaw_deg`` off the walking
-    direction) at the facades of one side, nothing nearer than ``min_depth``."""
-    rng = rng or np.random.default_rng(0)
-    camera = camera or pinhole_camera(640, 480)
-    lo, hi = scene.free_lo, scene.free_hi
-    for _ in range(tries):
-        if scene.name == "street":
-            w, L = scene.meta["width"], scene.meta["length"]
-            side = rng.choice([-1.0, 1.0]) if scene.meta.get("two_sided", True) else -1.0
-            x = -side * w * rng.uniform(0.1, 0.3)
-            y0 = rng.uniform(0.1, 0.9) * L - 0.5 * step * (n - 1)
-            start, along, toward = (
-                np.array([x, y0, height]),
-                np.array([0, 1.0, 0]),
-                np.array([side, 0, 0.0]),
-            )
-        else:  # walk parallel to the x = lo side, looking at it
-            start = np.array(
-                [lo[0] + rng.uniform(0.4, 0.7) * (hi[0] - lo[0]), rng.uniform(lo[1], hi[1]), height]
-            )
-            along, toward = np.array([0, 1.0, 0]) * rng.choice([-1.0, 1.0]), np.array([-1.0, 0, 0])
-        eyes = start + along * step * np.arange(n)[:, None]
-        if not scene.in_free_space(eyes, margin=0.5).all():
-            continue
-        yaw0 = np.deg2rad(rng.uniform(*yaw_deg))
-        poses = []
-        for i, eye in enumerate(eyes):
-            yaw = yaw0 + np.deg2rad(10.0) * (i / max(n - 1, 1) - 0.5)
-            fwd = np.cos(yaw) * toward + np.sin(yaw) * along
-            poses.append(look_at(eye, eye + fwd + UP * 0.1))
-        cov = [_coverage(scene, camera, p) for p in poses]
-        if all(c >= 0.8 and d >= min_depth for c, d in cov):
-            return poses
-    raise RuntimeError(f"view_orbit: no free walk found in scene {scene.name}")
 
 
 # -- ground truth ----------------------------------------------------------------------------
@@ -391,10 +315,3 @@ def covisible_fraction(r0: RenderResult, r1: RenderResult, rel_tol: float = 0.01
     if not valid.any():
         return 0.0
     return float(covisible(r0, r1, rel_tol)[valid].mean())
-
-
-def pitched(cam_from_world: pycolmap.Rigid3d, down_deg: float) -> pycolmap.Rigid3d:
-    """The same camera tilted down by ``down_deg`` about its own x axis (y is down)."""
-    a = np.deg2rad(down_deg)
-    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(tilt), np.zeros(3)) * cam_from_world

@@ -1,5 +1,6 @@
 """One textured plane seen by a pinhole camera: exact images and depth for tests and
-benchmarks (the geometry is known in closed form, unlike the street scenes of synth.scene).
+benchmarks (the geometry is known in closed form, unlike the street scenes of
+rectified_colmap.demo).
 
 Conventions: world plane z = 0 with the texture centred on the origin (texture x along
 world x, texture y along world -y); cameras (K, R, t) with R, t = cam_from_world, x right,
@@ -12,7 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..conventions import to_opencv_homography
+from rectified_colmap.conventions import to_opencv_homography
 
 
 def textured_image(h: int, w: int, seed: int = 0) -> np.ndarray:
@@ -29,8 +30,8 @@ def textured_image(h: int, w: int, seed: int = 0) -> np.ndarray:
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """(R (3, 3), t (3,)) of cam_from_world for a camera at ``eye`` looking at ``target``,
-    image y down = -``up`` (synth.views.look_at gives the same as a pycolmap.Rigid3d, with a
-    roll and the degenerate cases)."""
+    image y down = -``up`` (rectified_colmap.demo.views.look_at gives the same as a
+    pycolmap.Rigid3d, with a roll and the degenerate cases)."""
     eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
     z = target - eye
     z /= np.linalg.norm(z)

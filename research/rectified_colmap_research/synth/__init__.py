@@ -1,4 +1,10 @@
-"""Procedural street scenes of textured planar quads with exact depth, normals and poses.
+"""Procedural street scenes of textured planar quads with exact depth, normals and poses:
+the renderer of the demo wing (``rectified_colmap.demo``: street scenes, textures, render,
+cameras and the walk along a street) with what training, tests and benchmarks add to it:
+``scenes`` (corner, square and rubble scenes, random training samples), ``views`` (random
+views, view pairs, ground truth between views), ``lines`` (line drawings of a street for the
+vanishing-point tests) and ``planar`` (one textured plane seen by a pinhole camera). Every
+name below is re-exported here, wherever it lives.
 
 World frame: metres, z up, ground z = 0. Cameras: pycolmap PINHOLE / SIMPLE_PINHOLE (COLMAP
 pixel convention); poses: ``cam_from_world`` pycolmap.Rigid3d (camera x right, y down,
@@ -7,7 +13,7 @@ z forward).
 How to use::
 
     import numpy as np
-    from rectified_colmap import synth
+    from rectified_colmap_research import synth
 
     rng = np.random.default_rng(0)
     scene = synth.street(rng)                      # also corner(), square(), rubble()
@@ -33,72 +39,28 @@ Photos can replace procedural facade textures: ``street(rng, texture_dir=folder)
 
 from __future__ import annotations
 
-import numpy as np
+from rectified_colmap.demo.render import RenderResult, cast, render
+from rectified_colmap.demo.scene import KIND_NAMES, Scene
+from rectified_colmap.demo.street import street
+from rectified_colmap.demo.textures import make_texture
+from rectified_colmap.demo.views import look_at, pinhole_camera, pitched, view_orbit
 
-from .render import RenderResult, cast, raycast, render
-from .scene import KIND_NAMES, Scene, corner, rubble, square, street
-from .textures import make_texture
+from .scenes import corner, random_sample, random_scene, rubble, square
 from .views import (
     angle_between_views,
     backproject,
     camera_center,
     covisible,
     covisible_fraction,
-    look_at,
-    pinhole_camera,
-    pitched,
     random_camera,
     random_view,
+    raycast,
     relative_pose,
     relative_T,
     reproject,
-    view_orbit,
     view_pair,
     viewing_direction,
 )
-
-
-def random_scene(
-    rng: np.random.Generator,
-    texture_dir=None,
-    probs=(0.7, 0.15, 0.15),
-    texel: float = 0.025,
-    tree_prob: float = 0.0,
-    cloud_prob: float = 0.0,
-) -> Scene:
-    """street / corner / square with probabilities ``probs``; with trees with probability
-    ``tree_prob``, and clouds (cover 0.2-0.9) with probability ``cloud_prob`` (for 0 no
-    random number is drawn, so seeded scenes are unchanged)."""
-    k = int(rng.choice(3, p=np.asarray(probs) / np.sum(probs)))
-    trees = bool(tree_prob > 0 and rng.random() < tree_prob)
-    scene = (street, corner, square)[k](rng, texture_dir=texture_dir, texel=texel, trees=trees)
-    if cloud_prob > 0 and rng.random() < cloud_prob:
-        scene.clouds = float(rng.uniform(0.2, 0.9))
-    return scene
-
-
-def random_sample(
-    rng: np.random.Generator,
-    width: int = 256,
-    height: int = 192,
-    texture_dir=None,
-    supersample: int = 2,
-    focal_range=(0.6, 1.4),
-    noise: float = 0.0,
-    tree_prob: float = 0.0,
-    cloud_prob: float = 0.0,
-) -> RenderResult:
-    """A training view: random scene (with trees and clouds with probabilities
-    ``tree_prob`` and ``cloud_prob``), random
-    camera (focal ``focal_range`` x width), random view (see :func:`random_view`). The
-    camera and pose are in the result. Textures have about the resolution of a pixel 10 m
-    away (10 / width metres per texel, 2.5-6 cm)."""
-    texel = float(np.clip(10.0 / width, 0.025, 0.06))
-    scene = random_scene(rng, texture_dir, texel=texel, tree_prob=tree_prob, cloud_prob=cloud_prob)
-    camera = random_camera(rng, width, height, focal_range)
-    pose = random_view(scene, rng, camera)
-    return render(scene, camera, pose, supersample, noise, int(rng.integers(1 << 31)))
-
 
 __all__ = [
     "RenderResult",

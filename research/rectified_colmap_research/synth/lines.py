@@ -10,8 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..camera import rays_to_image
-from ..conventions import to_opencv_points
+from rectified_colmap.camera import rays_to_image
+from rectified_colmap.conventions import to_opencv_points
 
 
 def random_rotation(rng):

@@ -54,7 +54,7 @@ def pinhole_K(camera: pycolmap.Camera) -> np.ndarray:
     name = model_name(camera)
     if name not in ("PINHOLE", "SIMPLE_PINHOLE"):
         raise ValueError(
-            f"synth.render: camera model {name} is not supported (PINHOLE or SIMPLE_PINHOLE only)"
+            f"render: camera model {name} is not supported (PINHOLE or SIMPLE_PINHOLE only)"
         )
     return np.asarray(camera.calibration_matrix(), np.float64)
 
@@ -267,7 +267,7 @@ def _cloud_map(scene: Scene, h: int = 256, w: int = 1024) -> np.ndarray:
     """(h, w) float32 cloud density over (elevation 90 -> 0 deg, azimuth 0 -> 360 deg),
     periodic in azimuth, deterministic from the scene's seed; cover ``scene.clouds``."""
     if "clouds" not in scene._pyramids:
-        from .textures import value_noise
+        from .textures.blocks import value_noise
 
         rng = np.random.default_rng(scene.seed + 17)
         pad = w // 4
@@ -334,27 +334,3 @@ def render(
     image = np.clip(img + 0.5, 0, 255).astype(np.uint8)
     kind = np.where(qid >= 0, scene.kind[np.maximum(qid, 0)], -1).astype(np.int8)
     return RenderResult(image, depth32, normals, qid.astype(np.int32), camera, cam_from_world, kind)
-
-
-def raycast(scene: Scene, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest hits of world rays (P, 3) origins and directions: ray parameter t (P,)
-    (inf: none; in units of |dir|) and quad id (P,) (-1)."""
-    origins = np.asarray(origins, float).reshape(-1, 3)
-    dirs = np.asarray(dirs, float).reshape(-1, 3)
-    nrm = np.cross(scene.eu, scene.ev)
-    best = np.full(len(dirs), np.inf)
-    ids = np.full(len(dirs), -1, np.int32)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        den = dirs @ nrm.T  # (P, N)
-        rel = scene.origin[None] - origins[:, None]  # (P, N, 3)
-        tt = np.einsum("pnk,nk->pn", rel, nrm) / den
-        hit = origins[:, None] + tt[..., None] * dirs[:, None] - scene.origin[None]
-        u = np.einsum("pnk,nk->pn", hit, scene.eu)
-        v = np.einsum("pnk,nk->pn", hit, scene.ev)
-        ok = (tt > 1e-6) & (u >= 0) & (u <= scene.size[:, 0]) & (v >= 0) & (v <= scene.size[:, 1])
-    tt = np.where(ok, tt, np.inf)
-    if tt.shape[1]:
-        ids = np.argmin(tt, 1).astype(np.int32)
-        best = tt[np.arange(len(dirs)), ids]
-        ids[~np.isfinite(best)] = -1
-    return best, ids

@@ -4,6 +4,18 @@ Renders a short walk along a synthetic street (the renderer's poses and intrinsi
 exact), extracts rectified SIFT with the embedded depth network into a COLMAP database and
 an hloc feature file, matches and maps with pycolmap, and compares the recovered camera
 rotations with the ground truth.
+
+The demo wing: this job (:func:`run_demo`, :func:`render_walk`) and the renderer it runs,
+procedural street scenes of textured planar quads with exact depth, normals and poses:
+``scene`` (the quad scene, its builder), ``street`` (the demo's street: facade rows,
+clutter, trees), ``textures`` (procedural and photo textures), ``render`` (ray casting:
+image, depth, normals, plane ids), ``views`` (pinhole cameras, look-at poses, the walk along
+a street). World frame: metres, z up, ground z = 0; cameras are pycolmap PINHOLE /
+SIMPLE_PINHOLE (COLMAP pixel convention); poses ``cam_from_world`` pycolmap.Rigid3d (camera
+x right, y down, z forward). What only training, tests and benchmarks use (random views,
+view pairs and their ground truth, the corner, square and rubble scenes, random training
+samples, line drawings, one textured plane) is research code:
+``rectified_colmap_research.synth`` (research/, not installed).
 """
 
 from __future__ import annotations
@@ -16,10 +28,12 @@ import cv2
 import numpy as np
 import pycolmap
 
-from . import synth
-from .config import DEFAULT_DEPTH_MODEL
-from .extraction import extract
-from .geometry import rotation_angle_deg
+from ..config import DEFAULT_DEPTH_MODEL
+from ..extraction import extract
+from ..geometry import rotation_angle_deg
+from .render import render
+from .street import street
+from .views import pinhole_camera, pitched, view_orbit
 
 logger = logging.getLogger(__name__)
 
@@ -29,14 +43,14 @@ def render_walk(
 ) -> tuple[list[str], pycolmap.Camera, dict[str, pycolmap.Rigid3d]]:
     """Write a walk along a street to out_dir; returns (names, camera, cam_from_world)."""
     rng = np.random.default_rng(seed)
-    scene = synth.street(rng)
-    camera = synth.pinhole_camera(width, height, 0.7 * width)
+    scene = street(rng)
+    camera = pinhole_camera(width, height, 0.7 * width)
     out_dir.mkdir(parents=True, exist_ok=True)
     names, poses = [], {}
-    for i, pose in enumerate(synth.view_orbit(scene, num_images, rng, camera=camera)):
-        pose = synth.pitched(pose, 12.0)  # ground and facades: no single-plane degeneracy
+    for i, pose in enumerate(view_orbit(scene, num_images, rng, camera=camera)):
+        pose = pitched(pose, 12.0)  # ground and facades: no single-plane degeneracy
         name = f"street_{i:03d}.png"
-        cv2.imwrite(str(out_dir / name), synth.render(scene, camera, pose).image[..., ::-1])
+        cv2.imwrite(str(out_dir / name), render(scene, camera, pose).image[..., ::-1])
         names.append(name)
         poses[name] = pose
     return names, camera, poses
