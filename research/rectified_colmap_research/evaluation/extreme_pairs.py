@@ -390,7 +390,7 @@ class ExtremeConf:
     )
     """Per view: an exact in-plane rotation, or "other": uniform in [0, 360)."""
     scale_range: tuple[float, float] = (0.25, 4.0)
-    max_scale_change: float = 6.0
+    max_scale_change: float = 8.0
     """Scale change c = s_big / s_small: log-uniform in [1, this]; the geometric mean of the
     two scales log-uniform where both stay in ``scale_range``."""
     focal_range: tuple[float, float] = (0.7, 1.6)
