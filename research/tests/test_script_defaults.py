@@ -15,6 +15,7 @@ SHARED = Path(__file__).resolve().parents[2].parent / "shared"
     [
         ("eval_hloc_sfm", "SACRE_COEUR", "vendor/hloc/datasets/sacre_coeur/mapping"),
         ("eval_sparse_sfm", "DATA", "data"),
+        ("build_extreme_pairs", "DATA_ROOT", "data"),
     ],
 )
 def test_default_data_is_the_shared_folder(script, name, relative):

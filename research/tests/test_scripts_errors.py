@@ -16,6 +16,7 @@ RESEARCH = Path(__file__).resolve().parents[1]
     [
         ("aachen_hloc.py", ["--make_mini_from", "{x}", "--dataset", "{t}/d", "--outputs", "{t}/o"]),
         ("eval_homography.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
+        ("build_extreme_pairs.py", ["--output", "{t}/o", "--data_root", "{x}"]),
         ("eval_strecha.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
         ("benchmark.py", ["--image_path", "{x}"]),
     ],
