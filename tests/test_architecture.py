@@ -179,17 +179,27 @@ def test_cli_is_a_thin_layer_nobody_imports():
     assert not cross, f"CLI modules importing each other (shared code belongs below): {cross}"
 
 
-@pytest.mark.parametrize(
-    "script", sorted(p.name for p in (ROOT / "research" / "scripts").glob("*.py"))
+SCRIPTS = sorted(
+    p.relative_to(ROOT).as_posix()
+    for folder in ("scripts", "research/scripts")
+    for p in (ROOT / folder).glob("*.py")
 )
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_scripts_use_the_installed_package(script):
-    text = (ROOT / "research" / "scripts" / script).read_text()
+    """Scripts import the package's API, never its CLI, nor edit sys.path; the user scripts
+    (scripts/) import no research code (the research project is not installed)."""
+    text = (ROOT / script).read_text()
     tree = ast.parse(text)
     modules = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     modules |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     assert not any(
         m == "rectified_colmap.cli" or m.startswith("rectified_colmap.cli.") for m in modules
     ), f"{script} imports the CLI; use the API (eval/, ...)"
+    if script.startswith("scripts/"):
+        research = sorted(m for m in modules if m.startswith("rectified_colmap_research"))
+        assert not research, f"{script} imports research code {research}"
     if script not in SYS_PATH_ALLOWED:
         assert not re.search(r"sys\.path\.(insert|append)|sys\.path\[", text), (
             f"{script} edits sys.path; import rectified_colmap from the installed package"

@@ -88,8 +88,9 @@ REFERENCE_PAGES = [
     README,
     *(
         README.parent / "docs" / f"{n}.md"
-        for n in ("usage", "formats", "hloc", "depth-models", "results", "evaluation")
+        for n in ("usage", "formats", "hloc", "depth-models", "evaluation")
     ),
+    README.parent / "research" / "notes" / "results.md",
 ]
 
 
@@ -130,3 +131,35 @@ def test_conf_chooser_lists_every_named_conf_and_the_python_block_imports():
     block = re.search(r"```python\n(.*?)```", text, re.S).group(1)
     imports = "\n".join(ln for ln in block.splitlines() if ln.startswith(("from ", "import ")))
     exec(compile(imports, "README.md", "exec"), {})
+
+
+MARKDOWN_PAGES = sorted(
+    [README, README.parent / "research" / "README.md"]
+    + list((README.parent / "docs").glob("*.md"))
+    + list((README.parent / "research" / "notes").glob("*.md"))
+)
+
+
+def relative_links(text: str) -> list[str]:
+    """Targets of the Markdown links ``[text](target)`` outside fenced code that are paths
+    (no scheme, no bare anchor), without their ``#anchor``."""
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    out = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
+        if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            continue
+        out.append(target.split("#")[0])
+    return out
+
+
+def test_relative_links_splitter():
+    text = "[a](x.md) [b](https://e.org) [c](#top) [d](../y/z.md#s)\n```\n[e](no.md)\n```"
+    assert relative_links(text) == ["x.md", "../y/z.md"]
+
+
+@pytest.mark.parametrize(
+    "page", MARKDOWN_PAGES, ids=lambda p: p.relative_to(README.parent).as_posix()
+)
+def test_markdown_links_point_at_existing_files(page):
+    broken = [t for t in relative_links(page.read_text()) if not (page.parent / t).exists()]
+    assert not broken, f"{page.relative_to(README.parent)}: links to missing files {broken}"

@@ -1,5 +1,5 @@
 """scripts/eval_hloc_sfm.py: the table of its runs (the runs themselves go through the real
-hloc in tests/test_hloc_integration.py)."""
+hloc in research/tests/test_hloc_integration.py)."""
 
 from scripts_util import load_script
 

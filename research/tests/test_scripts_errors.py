@@ -14,7 +14,6 @@ RESEARCH = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize(
     "script, args",
     [
-        ("aachen_hloc.py", ["--make_mini_from", "{x}", "--dataset", "{t}/d", "--outputs", "{t}/o"]),
         ("eval_homography.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
         ("build_extreme_pairs.py", ["--output", "{t}/o", "--data_root", "{x}"]),
         ("eval_strecha.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
@@ -24,8 +23,6 @@ RESEARCH = Path(__file__).resolve().parents[1]
 def test_scripts_report_a_missing_input_in_one_line(tmp_path, script, args):
     missing = tmp_path / "not-here"
     argv = [a.format(x=missing, t=tmp_path) for a in args]
-    if script == "aachen_hloc.py":
-        pytest.importorskip("hloc", reason="aachen_hloc.py needs hloc (docs/hloc.md)")
     out = subprocess.run(
         [sys.executable, str(RESEARCH / "scripts" / script), *argv],
         env=dict(os.environ, PYTHONPATH=str(RESEARCH)),

@@ -26,7 +26,10 @@ ORDER = textwrap.dedent("""
 """)
 
 
-@pytest.mark.parametrize("module", ["rectified_colmap.eval.aachen", "rectified_colmap.viz"])
+@pytest.mark.parametrize(
+    "module",
+    ["rectified_colmap.eval.aachen", "rectified_colmap.eval.hloc_compat", "rectified_colmap.viz"],
+)
 def test_zlib_loaded_before_pycolmap(module):
     # -S: no site hooks, which may load zlib at start-up and hide the order
     code = ORDER.format(module=module, path=[str(ROOT)] + [p for p in sys.path if p])

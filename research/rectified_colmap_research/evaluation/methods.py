@@ -1,7 +1,7 @@
 """What a row of an evaluation table runs: a method and its conf, written once.
 
-Every evaluation script (research/scripts/eval_*.py, aachen_hloc.py) names its rows the
-same way:
+Every evaluation script (research/scripts/eval_*.py) names its rows the same way (the user
+scripts, scripts/*.py, take the same ``--method sift|rectsift``):
 
 - ``sift``: exactly plain COLMAP SIFT through the same code (no patch can pass, exact
   COLMAP calls, no depth network): ``confs["sift"]``;
