@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from rectified_colmap.io.colmap_db import MAX_IMAGE_ID
+from rectified_colmap.io.colmap_schema import MAX_IMAGE_ID
 
 from .colmap_sfm import connect, copy_database, rotation_errors
 
