@@ -12,9 +12,14 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..eval.config import EvalConf, HomographyConf
+    _register_pairs(sub)
+    _register_homography(sub)
 
-    e, hc = EvalConf(), HomographyConf()  # the defaults the help texts show
+
+def _register_pairs(sub: argparse._SubParsersAction) -> None:
+    from ..eval.config import EvalConf
+
+    e = EvalConf()  # the defaults the help texts show
     p = sub.add_parser(
         "evaluate-pairs",
         help="relative-pose evaluation of feature files on image pairs",
@@ -23,18 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         f"under {e.success_deg:g} deg) per ground-truth rotation bin, pose AUC "
         "and GT-correct matches. Writes records.csv, summary.md and success.png.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--pairs",
-        type=Path,
-        nargs="+",
-        help="pair file(s) in the SuperGlue format (name0 name1 rot0 rot1 K0 K1 T_0to1)",
-    )
-    src.add_argument(
-        "--svc_root",
-        type=Path,
-        help="root of the Strong Viewpoint Changes dataset (best-effort reader)",
-    )
+    _add_pair_sources(p.add_mutually_exclusive_group(required=True))
     p.add_argument(
         "--features",
         nargs="+",
@@ -77,6 +71,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no_progress", action="store_true")
     p.set_defaults(func=run)
 
+
+def _add_pair_sources(src) -> None:
+    src.add_argument(
+        "--pairs",
+        type=Path,
+        nargs="+",
+        help="pair file(s) in the SuperGlue format (name0 name1 rot0 rot1 K0 K1 T_0to1)",
+    )
+    src.add_argument(
+        "--svc_root",
+        type=Path,
+        help="root of the Strong Viewpoint Changes dataset (best-effort reader)",
+    )
+
+
+def _register_homography(sub: argparse._SubParsersAction) -> None:
+    from ..eval.config import HomographyConf
+
+    hc = HomographyConf()  # the defaults the help texts show
     h = sub.add_parser(
         "evaluate-homography",
         help="homography evaluation of feature files on planar pairs",
