@@ -300,3 +300,73 @@ def test_the_wheel_holds_the_runtime_only():
     assert 'include = ["rectified_colmap*"]' in text
     assert not (PKG / "training").exists()
     assert (ROOT / "research" / "pyproject.toml").is_file()
+
+
+# -- size limits (issue 42): what a newcomer has to read --------------------------------------
+
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 60  # from `def` to its last line, docstring included
+MAX_CONF_FIELDS, MAX_SECTION_FIELDS = 60, 20
+MAX_EXTRACT_PARAMS = 8
+
+
+def _functions():
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                yield name, node
+
+
+def test_no_module_or_function_is_too_long():
+    long_modules = {
+        n: len(p.read_text().splitlines())
+        for n, p in MODULES.items()
+        if len(p.read_text().splitlines()) > MAX_MODULE_LINES
+    }
+    assert not long_modules, f"modules over {MAX_MODULE_LINES} lines: {long_modules}"
+    long_functions = {
+        f"{m}.{f.name}": f.end_lineno - f.lineno + 1
+        for m, f in _functions()
+        if f.end_lineno - f.lineno + 1 > MAX_FUNCTION_LINES
+    }
+    assert not long_functions, f"functions over {MAX_FUNCTION_LINES} lines: {long_functions}"
+    (extract_image,) = [f for m, f in _functions() if m == "pipeline" and f.name == "extract_image"]
+    assert extract_image.end_lineno - extract_image.lineno + 1 <= 50  # one assembly path
+
+
+def test_the_configuration_stays_small():
+    import dataclasses
+
+    from rectified_colmap.config import ExtractConf
+
+    conf = ExtractConf()
+    sizes = {
+        f.name: len(dataclasses.fields(getattr(conf, f.name))) for f in dataclasses.fields(conf)
+    }
+    assert sum(sizes.values()) <= MAX_CONF_FIELDS, sizes
+    assert max(sizes.values()) <= MAX_SECTION_FIELDS, sizes
+
+
+def test_extract_takes_few_parameters():
+    import inspect
+
+    from rectified_colmap import extract
+
+    params = inspect.signature(extract).parameters
+    assert len(params) <= MAX_EXTRACT_PARAMS, list(params)
+
+
+def test_the_wheel_never_imports_torch():
+    """Not at module level nor in a function: torch is research's (training, export)."""
+    bad = []
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            mods = (
+                [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else []
+            )
+            bad += [f"{name}: {m}" for m in mods if m == "torch" or m.startswith("torch.")]
+    assert not bad, bad
