@@ -26,10 +26,13 @@ logger.addHandler(logging.NullHandler())
 
 from .config import (  # noqa: E402  (after zlib)
     DedupConf,
+    DepthInputConf,
     ExtractConf,
     NormalConf,
     PlaneConf,
+    ReaderConf,
     RectifyConf,
+    RunConf,
     SiftConf,
     VpConf,
     confs,
@@ -39,11 +42,18 @@ from .depth import DepthMap  # noqa: E402
 from .extraction import extract  # noqa: E402
 from .features import Features  # noqa: E402
 from .pipeline import ImageResult, extract_image  # noqa: E402
+from .sift import Sift  # noqa: E402
 
 __all__ = [
     # entry points: a folder of images -> COLMAP database / hloc HDF5; one image -> features
     "extract",
     "extract_image",
+    # the options of a run of extract: images and cameras, depth inputs, processes
+    "ReaderConf",
+    "DepthInputConf",
+    "RunConf",
+    # SIFT extractors kept warm across extract_image calls
+    "Sift",
     # what they return
     "ImageResult",
     "Features",

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, TypeVar
 
 
 @dataclass
@@ -236,3 +237,58 @@ DEFAULT_PNG_SCALE = 0.001
 """16-bit PNG depth files: depth = value x scale (millimetres)."""
 DEFAULT_CAMERA_MODEL = "SIMPLE_RADIAL"
 """COLMAP camera model of new cameras made from EXIF (as COLMAP's feature_extractor)."""
+
+
+# -- the options of a run of rectified_colmap.extract (inputs, not the method) --------------
+
+
+@dataclass
+class ReaderConf:
+    """Which images, and how their cameras are made: COLMAP's ImageReaderOptions
+    (``--ImageReader.*``; rectified_colmap.extraction.plan)."""
+
+    image_list: Path | list[str] | None = None  # names under the image folder, or a file of them
+    mask_path: Path | None = None  # COLMAP's keypoint masks: <mask_path>/<name>.png
+    camera_model: str | None = None  # new cameras' model (default: DEFAULT_CAMERA_MODEL, EXIF)
+    camera_params: list[float] | str | None = None  # "p1,p2,..." in COLMAP's order
+    single_camera: bool = False  # one camera for all new images
+    single_camera_per_folder: bool = False  # one camera per folder of new images
+    default_focal_length_factor: float = 1.2  # without EXIF: f = this x the larger side
+
+
+@dataclass
+class DepthInputConf:
+    """Where depth comes from (rectified_colmap.extraction.run): a depth file, else the
+    network, else none (plain SIFT)."""
+
+    path: Path | None = None  # folder of depth files (rectified_colmap.depth.files)
+    kind: str = "depth"  # what the files hold: depth, metric or disparity
+    png_scale: float = DEFAULT_PNG_SCALE  # 16-bit PNG depth = value x this
+    model: str | None = DEFAULT_DEPTH_MODEL  # network: registry name, .onnx path or "none"
+
+
+@dataclass
+class RunConf:
+    """How a run goes (rectified_colmap.extraction): processes, shards, Ray, pictures."""
+
+    num_workers: int = 1  # worker processes (with ray_address: Ray actors)
+    shard: str | tuple[int, int] | None = None  # "i/n": this job's share of the images
+    ray_address: str | None = None  # a Ray cluster ("local": a local instance)
+    progress: bool = True  # a progress bar
+    visualize: Path | None = None  # PNGs of each image's planes and features here
+
+
+_Options = TypeVar("_Options", ReaderConf, DepthInputConf, RunConf)
+
+
+def options(cls: type[_Options], value: _Options | dict | None) -> _Options:
+    """``value`` as a ``cls`` (a ReaderConf, DepthInputConf or RunConf): itself, the defaults
+    updated by a dict, or the defaults; ValueError naming an unknown key."""
+    if isinstance(value, cls):
+        return value
+    value = dict(value or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(value) - names)
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown key(s) {unknown}; known: {sorted(names)}")
+    return cls(**value)

@@ -86,13 +86,14 @@ def method_conf(method: str, conf: str | None, max_num_features: int | None) -> 
 
 
 def depth_args(method: str, depth_model: str | None, depth_path: Path | None) -> dict:
-    """Plain SIFT runs without depth; rectified SIFT with ``depth_path`` and the given
-    network (the embedded default when none)."""
+    """The depth inputs (rectified_colmap.DepthInputConf keys): plain SIFT runs without
+    depth; rectified SIFT with ``depth_path`` and the given network (the embedded default
+    when none)."""
     from rectified_colmap.config import DEFAULT_DEPTH_MODEL
 
     if method == "sift":
-        return {"depth_model": None, "depth_path": None}
-    return {"depth_model": depth_model or DEFAULT_DEPTH_MODEL, "depth_path": depth_path}
+        return {"model": None, "path": None}
+    return {"model": depth_model or DEFAULT_DEPTH_MODEL, "path": depth_path}
 
 
 def extract_hloc_sift(images: Path, features: Path, names: list[str], max_num_features):
@@ -126,10 +127,10 @@ def extract_features(method: str, images: Path, features: Path, cameras: dict, w
         images,
         database=cam_db,
         hloc_features=features,
-        image_list=names,
         conf=method_conf(method, args.conf, args.max_num_features),
-        num_workers=args.num_workers,
-        **depth_args(method, args.depth_model, args.depth_path),
+        reader={"image_list": names},
+        depth=depth_args(method, args.depth_model, args.depth_path),
+        run={"num_workers": args.num_workers},
     )
     logger.info("features (%s)\n%s", method, s.report())
     if s.failed:

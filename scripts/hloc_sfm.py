@@ -75,13 +75,17 @@ def extract_features(images: Path, features: Path, args) -> list[str]:
         images,
         hloc_features=features,
         conf=method_conf(args.method, args.conf, args.max_num_features),
-        depth_model=None if plain else (args.depth_model or DEFAULT_DEPTH_MODEL),
-        depth_path=None if plain else args.depth_path,
-        camera_model=args.camera_model,
-        camera_params=args.camera_params,
-        single_camera=args.camera_mode == "single",
-        single_camera_per_folder=args.camera_mode == "per_folder",
-        num_workers=args.num_workers,
+        reader={
+            "camera_model": args.camera_model,
+            "camera_params": args.camera_params,
+            "single_camera": args.camera_mode == "single",
+            "single_camera_per_folder": args.camera_mode == "per_folder",
+        },
+        depth={
+            "model": None if plain else (args.depth_model or DEFAULT_DEPTH_MODEL),
+            "path": None if plain else args.depth_path,
+        },
+        run={"num_workers": args.num_workers},
     )
     logger.info("features (%s)\n%s", args.method, summary.report())
     if summary.failed:

@@ -121,8 +121,8 @@ if __name__ == "__main__":
         used = use_thread_pools(rng)
         t0 = time.perf_counter()
         s = extract(images, database=out / f"{i}.db", hloc_features=out / f"{i}.h5",
-                    camera_model="PINHOLE", camera_params=params, num_workers=2,
-                    progress=False)
+                    reader={"camera_model": "PINHOLE", "camera_params": params},
+                    run={"num_workers": 2, "progress": False})
         assert s.ok and len(s.done) == len(list(images.glob("*.jpg"))), s.report()
         print(f"run {i}: {time.perf_counter() - t0:.1f} s after {used}", flush=True)
 """
@@ -172,9 +172,8 @@ def test_cli_workers_from_python_c_equal_one_worker(views, tmp_path):
         views,
         database=one / "db.db",
         hloc_features=one / "f.h5",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": PARAMS},
+        run={"progress": False},
     )
     assert s.ok and len(s.done) == NUM_IMAGES and len(s.plain) < NUM_IMAGES
     two = tmp_path / "two"
@@ -200,8 +199,9 @@ def _extraction_code(views: Path, db: Path, guard: bool) -> str:
     body = textwrap.dedent(
         f"""
         from rectified_colmap.extraction import extract
-        s = extract({str(views)!r}, database={str(db)!r}, camera_model="PINHOLE",
-                    camera_params="{PARAMS}", num_workers=2, progress=False)
+        s = extract({str(views)!r}, database={str(db)!r},
+                    reader={{"camera_model": "PINHOLE", "camera_params": "{PARAMS}"}},
+                    run={{"num_workers": 2, "progress": False}})
         assert s.ok and len(s.done) == {NUM_IMAGES}, s.report()
         """
     )

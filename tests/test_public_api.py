@@ -9,6 +9,10 @@ import rectified_colmap
 PUBLIC = [
     "extract",
     "extract_image",
+    "ReaderConf",
+    "DepthInputConf",
+    "RunConf",
+    "Sift",
     "ImageResult",
     "Features",
     "DepthMap",
@@ -30,7 +34,7 @@ def test_all_is_pinned():
 
 
 def test_every_public_name_is_its_modules_object():
-    from rectified_colmap import config, depth, features, pipeline
+    from rectified_colmap import config, depth, features, pipeline, sift
     from rectified_colmap import extraction as extract_pkg
 
     expected = {
@@ -38,6 +42,7 @@ def test_every_public_name_is_its_modules_object():
         "extract_image": pipeline.extract_image,
         "ImageResult": pipeline.ImageResult,
         "Features": features.Features,
+        "Sift": sift.Sift,
         "DepthMap": depth.DepthMap,
         "confs": config.confs,
         "merge_conf": config.merge_conf,

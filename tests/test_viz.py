@@ -197,11 +197,9 @@ def test_images_without_planes_get_an_overview(tmp_path):
     s = extract(
         images,
         database=tmp_path / "db.db",
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params="100,100,80,60",
-        visualize=tmp_path / "viz",
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": "100,100,80,60"},
+        depth={"model": "none"},
+        run={"visualize": tmp_path / "viz", "progress": False},
     )
     assert s.ok and s.done == ["a.png"]
     assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["a.png.overview.png"]

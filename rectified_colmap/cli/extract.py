@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -16,14 +17,6 @@ logger = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..config import (
-        DEFAULT_CAMERA_MODEL,
-        DEFAULT_DEPTH_MODEL,
-        DEFAULT_PNG_SCALE,
-        ExtractConf,
-        confs,
-    )
-
     p = sub.add_parser(
         "extract",
         help="extract rectified SIFT into a COLMAP database and/or hloc HDF5",
@@ -31,61 +24,58 @@ def register(sub: argparse._SubParsersAction) -> None:
         "SIFT (keypoints with affine shape, SIFT descriptors) so that "
         "`colmap exhaustive_matcher`/`mapper` and hloc consume them unchanged.",
     )
-    p.add_argument(
+    _add_io_options(p.add_argument_group("inputs and outputs"))
+    _add_reader_options(p.add_argument_group("images and cameras (COLMAP's ImageReader)"))
+    _add_depth_options(p.add_argument_group("depth"))
+    _add_method_options(p.add_argument_group("method"))
+    _add_run_options(p.add_argument_group("run"))
+    add_colmap_sift_options(p)
+    p.set_defaults(func=run)
+
+
+def _add_io_options(g) -> None:
+    g.add_argument(
         "--database",
         "--database_path",
         dest="database",
         type=Path,
         help="COLMAP database to create or complete",
     )
-    p.add_argument("--image_path", type=Path, required=True, help="root folder of the images")
-    p.add_argument(
+    g.add_argument("--image_path", type=Path, required=True, help="root folder of the images")
+    g.add_argument("--hloc_features", type=Path, help="also write an hloc feature HDF5 file")
+    g.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="re-extract images that already have features, replacing them and "
+        "deleting their matches (without it, outputs are only added to)",
+    )
+
+
+def _add_reader_options(g) -> None:
+    """Flags of ReaderConf (rectified_colmap.config), dests named as its fields."""
+    from ..config import DEFAULT_CAMERA_MODEL, ReaderConf
+
+    g.add_argument(
         "--image_list",
         "--image_list_path",
         dest="image_list",
         type=Path,
         help="text file of image names (relative to --image_path) to process",
     )
-    p.add_argument("--hloc_features", type=Path, help="also write an hloc feature HDF5 file")
-    p.add_argument(
-        "--depth_path",
-        type=Path,
-        help="folder of depth maps: sub/0001.jpg -> sub/0001.jpg.npy, sub/0001.npy, "
-        ".npz, 16-bit .png, COLMAP .geometric.bin/.photometric.bin",
-    )
-    p.add_argument(
-        "--depth_kind",
-        default="depth",
-        choices=["depth", "metric", "disparity"],
-        help="what the depth files hold (default %(default)s: z-depth up to scale)",
-    )
-    p.add_argument(
-        "--depth_png_scale",
-        type=float,
-        default=DEFAULT_PNG_SCALE,
-        help="16-bit PNG depth = value x scale (default %(default)s: millimetres)",
-    )
-    p.add_argument(
-        "--depth_model",
-        default=DEFAULT_DEPTH_MODEL,
-        help="depth network for images without a depth file: a registry name "
-        "(`rectified-colmap models list`), a path to an .onnx, or 'none' "
-        "(default %(default)s)",
-    )
-    p.add_argument(
+    g.add_argument(
         "--camera_model",
         "--ImageReader.camera_model",
         dest="camera_model",
         help=f"COLMAP camera model for new cameras (default: {DEFAULT_CAMERA_MODEL} from EXIF)",
     )
-    p.add_argument(
+    g.add_argument(
         "--camera_params",
         "--ImageReader.camera_params",
         dest="camera_params",
         help="comma-separated params in COLMAP's order and pixel convention, e.g. "
         "fx,fy,cx,cy for PINHOLE",
     )
-    p.add_argument(
+    g.add_argument(
         "--single_camera",
         "--ImageReader.single_camera",
         dest="single_camera",
@@ -93,7 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=False,
         help="all new images share one camera (COLMAP's; alone or with 0/1)",
     )
-    p.add_argument(
+    g.add_argument(
         "--single_camera_per_folder",
         "--ImageReader.single_camera_per_folder",
         dest="single_camera_per_folder",
@@ -101,7 +91,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=False,
         help="new images in the same folder share one camera (COLMAP's; 0/1)",
     )
-    p.add_argument(
+    g.add_argument(
         "--mask_path",
         "--ImageReader.mask_path",
         dest="mask_path",
@@ -109,16 +99,53 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="COLMAP's keypoint masks: MASKS/sub/0001.jpg.png for sub/0001.jpg; no features "
         "where the mask is black (images without a mask file are not masked)",
     )
-    p.add_argument(
+    g.add_argument(
         "--default_focal_length_factor",
         "--ImageReader.default_focal_length_factor",
         dest="default_focal_length_factor",
         type=float,
-        default=1.2,
+        default=ReaderConf.default_focal_length_factor,
         help="focal length guess for images without EXIF: this x the larger side "
         "(COLMAP's; default %(default)s)",
     )
-    p.add_argument(
+
+
+def _add_depth_options(g) -> None:
+    """Flags of DepthInputConf: dests ``depth_<field>``."""
+    from ..config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE
+
+    g.add_argument(
+        "--depth_path",
+        type=Path,
+        help="folder of depth maps: sub/0001.jpg -> sub/0001.jpg.npy, sub/0001.npy, "
+        ".npz, 16-bit .png, COLMAP .geometric.bin/.photometric.bin",
+    )
+    g.add_argument(
+        "--depth_kind",
+        default="depth",
+        choices=["depth", "metric", "disparity"],
+        help="what the depth files hold (default %(default)s: z-depth up to scale)",
+    )
+    g.add_argument(
+        "--depth_png_scale",
+        dest="depth_png_scale",
+        type=float,
+        default=DEFAULT_PNG_SCALE,
+        help="16-bit PNG depth = value x scale (default %(default)s: millimetres)",
+    )
+    g.add_argument(
+        "--depth_model",
+        default=DEFAULT_DEPTH_MODEL,
+        help="depth network for images without a depth file: a registry name "
+        "(`rectified-colmap models list`), a path to an .onnx, or 'none' "
+        "(default %(default)s)",
+    )
+
+
+def _add_method_options(g) -> None:
+    from ..config import ExtractConf, confs
+
+    g.add_argument(
         "--max_num_features",
         "--SiftExtraction.max_num_features",
         dest="max_num_features",
@@ -131,35 +158,38 @@ def register(sub: argparse._SubParsersAction) -> None:
         f"configuration's, {ExtractConf.from_dict(confs['rectsift']).sift.max_num_features} "
         "in rectsift",
     )
-    p.add_argument(
+    g.add_argument(
         "--conf",
         default="rectsift",
         help=f"named configuration ({', '.join(confs)}; default %(default)s: plain SIFT's "
         "features and rectified ones on top) or a JSON file of overrides, e.g. "
         '{"sift": {"max_num_features": 4096}}',
     )
-    p.add_argument(
+    g.add_argument(
         "--orientation",
         choices=["depth", "depth+vp"],
         default=None,
         help="plane orientations from depth normals only (vp.enabled off) or depth refined "
         "by vanishing points (depth+vp: vp.enabled). Default: as in --conf",
     )
-    p.add_argument(
+
+
+def _add_run_options(g) -> None:
+    g.add_argument(
         "--num_workers",
         type=int,
         default=1,
         help="worker processes (default %(default)s; with --ray: Ray actors, default there: "
         "one per CPU of the cluster)",
     )
-    p.add_argument(
+    g.add_argument(
         "--shard",
         metavar="INDEX/COUNT",
         help="only this job's share of the images (INDEX from 0), e.g. a job "
         "array's task; combine the shards' outputs with `rectified-colmap "
         "merge`",
     )
-    p.add_argument(
+    g.add_argument(
         "--ray",
         nargs="?",
         const="local",
@@ -168,21 +198,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "'auto' or ray://host:10001); without ADDRESS a local Ray instance. "
         "Needs `pip install 'rectified-colmap[ray]'`",
     )
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="re-extract images that already have features, replacing them and "
-        "deleting their matches (without it, outputs are only added to)",
-    )
-    p.add_argument(
+    g.add_argument(
         "--visualize",
         type=Path,
         help="write PNGs here: keypoints (plain vs rectified), planes and rectified patches, "
         "each with a legend (docs/usage.md)",
     )
-    p.add_argument("--no_progress", action="store_true", help="no progress bar")
-    add_colmap_sift_options(p)
-    p.set_defaults(func=run)
+    g.add_argument("--no_progress", action="store_true", help="no progress bar")
 
 
 def colmap_max_image_size(text: str) -> int:
@@ -338,6 +360,7 @@ def _load_conf(spec: str, max_num_features: int | None):
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..config import DepthInputConf, ReaderConf, RunConf
     from ..extraction import extract
 
     if args.database is None and args.hloc_features is None:
@@ -346,28 +369,26 @@ def run(args: argparse.Namespace) -> int:
     apply_colmap_options(args, conf)
     if getattr(args, "orientation", None) is not None:
         conf.vp.enabled = args.orientation != "depth"
-    summary = extract(
-        args.image_path,
-        database=args.database,
-        hloc_features=args.hloc_features,
-        image_list=args.image_list,
-        depth_path=args.depth_path,
-        depth_kind=args.depth_kind,
-        png_scale=args.depth_png_scale,
-        depth_model=args.depth_model,
-        camera_model=args.camera_model,
-        camera_params=args.camera_params,
-        single_camera=args.single_camera,
-        single_camera_per_folder=args.single_camera_per_folder,
-        focal_length_factor=args.default_focal_length_factor,
-        mask_path=args.mask_path,
-        conf=conf,
+    reader = ReaderConf(**{f.name: getattr(args, f.name) for f in dataclasses.fields(ReaderConf)})
+    depth = DepthInputConf(
+        **{f.name: getattr(args, f"depth_{f.name}") for f in dataclasses.fields(DepthInputConf)}
+    )
+    options = RunConf(
         num_workers=args.num_workers,
-        overwrite=args.overwrite,
-        visualize=args.visualize,
-        progress=not args.no_progress,
         shard=args.shard,
         ray_address=args.ray,
+        progress=not args.no_progress,
+        visualize=args.visualize,
+    )
+    summary = extract(
+        args.image_path,
+        args.database,
+        args.hloc_features,
+        conf,
+        reader,
+        depth,
+        options,
+        overwrite=args.overwrite,
     )
     (logger.info if summary.ok else logger.error)("summary\n%s", summary.report())
     return 0 if summary.ok else 1

@@ -75,12 +75,9 @@ def run_demo(
         images,
         database=db,
         hloc_features=h5,
-        depth_model=depth_model,
-        camera_model="PINHOLE",
-        camera_params=params,
-        single_camera=True,
-        num_workers=num_workers,
-        visualize=output / "viz",
+        reader={"camera_model": "PINHOLE", "camera_params": params, "single_camera": True},
+        depth={"model": depth_model},
+        run={"num_workers": num_workers, "visualize": output / "viz"},
     )
     logger.info("extraction\n%s", summary.report())
     pycolmap.match_exhaustive(db)

@@ -4,12 +4,12 @@ This is the Python API behind ``rectified-colmap extract``::
 
     from rectified_colmap.extraction import extract
     summary = extract(Path("images"), database=Path("db.db"), hloc_features=Path("f.h5"),
-                      depth_path=Path("depths"))
+                      depth={"path": Path("depths")}, run={"num_workers": 2})
 
 Image names are paths relative to ``image_dir`` with '/' separators, as COLMAP stores them.
 Cameras come, in this order, from the database (an image already there keeps its camera),
-from ``camera_model``/``camera_params``, or from EXIF (pycolmap.infer_camera_from_image).
-Depth comes from a file under ``depth_path`` when there is one, else from the depth network
+from ``reader``'s camera_model/camera_params, or from EXIF (pycolmap.infer_camera_from_image).
+Depth comes from a file under ``depth.path`` when there is one, else from the depth network
 (``depth_model``, the embedded default unless "none"), else the image gets plain SIFT.
 
 Users' data is never lost or silently changed (docs/usage.md "What is written, and when"):
@@ -43,7 +43,14 @@ import logging
 import time
 from pathlib import Path
 
-from ..config import DEFAULT_DEPTH_MODEL, DEFAULT_PNG_SCALE, ExtractConf
+from ..config import (
+    DEFAULT_DEPTH_MODEL,
+    DepthInputConf,
+    ExtractConf,
+    ReaderConf,
+    RunConf,
+    options,
+)
 from ..io.colmap_db import ColmapDatabase
 from ..io.hloc_h5 import HlocFeatureWriter
 from ..progress import progress_bar
@@ -52,7 +59,7 @@ from .run import Job, WorkerInit, make_runner
 from .summary import Summary
 from .write import Writer, check_outputs
 
-__all__ = ["DEFAULT_DEPTH_MODEL", "Summary", "extract"]
+__all__ = ["DEFAULT_DEPTH_MODEL", "DepthInputConf", "ReaderConf", "RunConf", "Summary", "extract"]
 
 logger = logging.getLogger(__name__)
 
@@ -61,61 +68,43 @@ def extract(
     image_dir: Path,
     database: Path | None = None,
     hloc_features: Path | None = None,
-    image_list: Path | list[str] | None = None,
-    depth_path: Path | None = None,
-    depth_kind: str = "depth",
-    png_scale: float = DEFAULT_PNG_SCALE,
-    depth_model: str | None = DEFAULT_DEPTH_MODEL,
-    camera_model: str | None = None,
-    camera_params: list[float] | str | None = None,
-    single_camera: bool = False,
-    single_camera_per_folder: bool = False,
-    focal_length_factor: float = 1.2,
-    mask_path: Path | None = None,
     conf: ExtractConf | dict | None = None,
-    num_workers: int = 1,
+    reader: ReaderConf | dict | None = None,
+    depth: DepthInputConf | dict | None = None,
+    run: RunConf | dict | None = None,
     overwrite: bool = False,
-    visualize: Path | None = None,
-    progress: bool = True,
-    shard: str | tuple[int, int] | None = None,
-    ray_address: str | None = None,
 ) -> Summary:
-    """Extract rectified SIFT for a folder of images; see the module docstring.
+    """Extract rectified SIFT for a folder of images into ``database`` and/or
+    ``hloc_features``; see the module docstring.
 
-    Cameras as COLMAP's --ImageReader options: ``camera_model`` / ``camera_params``,
-    ``single_camera``, ``single_camera_per_folder``, ``focal_length_factor`` (the focal
-    length guessed for images without EXIF, x the larger side). ``mask_path``: COLMAP's
-    keypoint masks, ``mask_path/<name>.png`` (no features where black; images without one
-    are not masked).
-
-    ``shard`` ("i/n" or (i, n)): only this job's share of the images
-    (rectified_colmap.extraction.plan.shard_names); merge the shards' outputs with
-    rectified_colmap.io.merge. ``ray_address``: run the per-image work as Ray actors on
-    that cluster ("local": a local Ray instance); ``num_workers`` actors, or one per CPU
-    of the cluster when it is 1. Results are written here, by the caller's process.
+    ``conf``: the method (ExtractConf or a nested dict over the defaults, e.g.
+    ``confs["rectsift-fast"]``); ``reader``: which images and their cameras, as COLMAP's
+    ImageReaderOptions (ReaderConf or a dict: image_list, mask_path, camera_model,
+    camera_params, single_camera, single_camera_per_folder, default_focal_length_factor);
+    ``depth``: depth files and the network (DepthInputConf: path, kind, png_scale, model);
+    ``run``: processes and pictures (RunConf: num_workers, shard "i/n", ray_address,
+    progress, visualize). Results are written here, by the caller's process.
 
     Raises (one-line message naming the file and the cause) before writing anything when
     an argument, an input folder, the depth model or an output cannot be used."""
     if database is None and hloc_features is None:
         raise ValueError("nothing to write: give a database and/or an hloc feature file")
     conf = (conf if isinstance(conf, ExtractConf) else ExtractConf.from_dict(conf)).validate()
-    cameras = CameraArgs.checked(
-        camera_model, camera_params, single_camera, single_camera_per_folder, focal_length_factor
-    )
+    reader, depth = options(ReaderConf, reader), options(DepthInputConf, depth)
+    run = options(RunConf, run)
+    cameras = CameraArgs.checked(reader)
     image_dir = Path(image_dir)
-    names = select_images(image_dir, image_list, shard)
-    if mask_path is not None and not Path(mask_path).is_dir():
-        raise FileNotFoundError(f"{mask_path}: mask path is not a folder")
-    summary = Summary()
-    t_start = time.perf_counter()
-    if depth_path is None and depth_model in (None, "none"):
+    names = select_images(image_dir, reader.image_list, run.shard)
+    if reader.mask_path is not None and not Path(reader.mask_path).is_dir():
+        raise FileNotFoundError(f"{reader.mask_path}: mask path is not a folder")
+    summary, t_start = Summary(), time.perf_counter()
+    if depth.path is None and depth.model in (None, "none"):
         logger.warning(
             "no depth source (no --depth_path, --depth_model none): every image gets plain SIFT"
         )
     check_outputs(database, hloc_features)
-    init = WorkerInit.of(depth_path, depth_kind, png_scale, depth_model, num_workers, ray_address)
-    runner = make_runner(init, num_workers, ray_address)  # fails here on a bad depth source
-
+    init = WorkerInit.of(depth, run)
+    runner = make_runner(init, run.num_workers, run.ray_address)  # fails on a bad depth source
     h5 = db = None
     try:
         h5 = HlocFeatureWriter(hloc_features) if hloc_features is not None else None
@@ -123,10 +112,10 @@ def extract(
             h5.create_if_missing()
         db = ColmapDatabase(database) if database is not None else None
         todo = plan(names, image_dir, db, h5, cameras, overwrite, summary)
-        writer = Writer(db, h5, todo, summary, overwrite, visualize)
-        masks = Path(mask_path).absolute() if mask_path is not None else None
+        writer = Writer(db, h5, todo, summary, overwrite, run.visualize)
+        masks = Path(reader.mask_path).absolute() if reader.mask_path is not None else None
         summary.work_seconds = _run_and_write(
-            runner, todo, image_dir, masks, conf, writer, progress
+            runner, todo, image_dir, masks, conf, writer, run.progress
         )
     finally:
         for closable in (runner, h5, db):

@@ -25,7 +25,7 @@ from pathlib import Path
 import pycolmap
 
 from .. import camera as cam_utils
-from ..config import DEFAULT_CAMERA_MODEL
+from ..config import DEFAULT_CAMERA_MODEL, ReaderConf
 from ..io.images import IMAGE_EXTENSIONS, ImageError, image_size, list_images
 from .summary import Summary, error_message
 from .write import copy_db_to_h5, copy_h5_to_db
@@ -56,16 +56,11 @@ class CameraArgs:
     focal_factor: float = 1.2
 
     @classmethod
-    def checked(
-        cls,
-        model: str | None,
-        params,
-        single: bool,
-        per_folder: bool = False,
-        focal_factor: float = 1.2,
-    ) -> CameraArgs:
-        """Parses 'p1,p2,...' params; one-line errors for a bad --camera_model /
-        --camera_params / focal factor, before anything runs."""
+    def checked(cls, reader: ReaderConf) -> CameraArgs:
+        """From a ReaderConf: parses 'p1,p2,...' params; one-line errors for a bad
+        --camera_model / --camera_params / focal factor, before anything runs."""
+        model, params = reader.camera_model, reader.camera_params
+        focal_factor = reader.default_focal_length_factor
         if isinstance(params, str):
             params = cam_utils.parse_camera_params(params)
         if params and not model:
@@ -76,6 +71,7 @@ class CameraArgs:
                 cam_utils.make_camera(model, params, 100, 100)
         if not focal_factor > 0:
             raise ValueError(f"--default_focal_length_factor must be positive, got {focal_factor}")
+        single, per_folder = reader.single_camera, reader.single_camera_per_folder
         return cls(model, params, bool(single), bool(per_folder), float(focal_factor))
 
     def new_camera(self, path: Path) -> PlannedCamera:

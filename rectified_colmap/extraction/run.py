@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from ..config import ExtractConf
+from ..config import DepthInputConf, ExtractConf, RunConf
 from ..depth.registry import load_depth_source
 from ..io.images import ImageError, decode_image, keypoints_on_mask, read_mask
 from ..parallel import capture_logs, check_not_bootstrapping, context, drain, replay
@@ -91,12 +91,12 @@ class WorkerInit:
     """Threads of the depth network; None: its default (one process does everything)."""
 
     @classmethod
-    def of(cls, depth_path, depth_kind, png_scale, depth_model, num_workers, ray_address):
+    def of(cls, depth: DepthInputConf, run: RunConf) -> WorkerInit:
         """For a run with these settings: the depth folder made absolute (workers may
         run elsewhere), one network thread per worker when there are several."""
-        parallel = num_workers > 1 or ray_address is not None
-        depth_path = None if depth_path is None else Path(depth_path).absolute()
-        return cls(depth_path, depth_kind, png_scale, depth_model, 1 if parallel else None)
+        parallel = run.num_workers > 1 or run.ray_address is not None
+        path = None if depth.path is None else Path(depth.path).absolute()
+        return cls(path, depth.kind, depth.png_scale, depth.model, 1 if parallel else None)
 
     def depth_sources(self) -> dict:
         """{"files": FileDepthSource | None, "network": OnnxDepthSource | None}; raises

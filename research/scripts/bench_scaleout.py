@@ -48,13 +48,13 @@ def main() -> None:
     args = ap.parse_args()
     shutil.rmtree(args.out, ignore_errors=True)
     args.out.mkdir(parents=True)
-    kw = {}
+    cams = {}  # ReaderConf's camera keys
     if args.render:
         from rectified_colmap.demo import render_walk
 
         images = args.out / "images"
         _, camera, _ = render_walk(images, num_images=args.render)
-        kw = dict(
+        cams = dict(
             camera_model="PINHOLE",
             single_camera=True,
             camera_params=",".join(map(str, camera.params)),
@@ -75,25 +75,24 @@ def main() -> None:
                 s = extract(
                     images,
                     database=out / f"s{i}.db",
-                    image_list=names,
-                    shard=(i, workers),
-                    progress=False,
-                    **kw,
+                    reader={"image_list": names, **cams},
+                    run={"shard": (i, workers), "progress": False},
                 )
                 work = max(work, s.work_seconds)
             merge_databases(
-                out / "db.db", [out / f"s{i}.db" for i in range(workers)], single_camera=bool(kw)
+                out / "db.db", [out / f"s{i}.db" for i in range(workers)], single_camera=bool(cams)
             )
             ips = len(names) / work  # shards run side by side on separate machines
         else:
             s = extract(
                 images,
                 database=out / "db.db",
-                image_list=names,
-                progress=False,
-                num_workers=workers,
-                ray_address="local" if "ray" in config else None,
-                **kw,
+                reader={"image_list": names, **cams},
+                run={
+                    "progress": False,
+                    "num_workers": workers,
+                    "ray_address": "local" if "ray" in config else None,
+                },
             )
             assert s.ok, s.report()
             ips = len(s.done) / s.work_seconds

@@ -113,8 +113,7 @@ def extract(scene: Path, cameras: str, method: str, gt, args, out: Path) -> tupl
             scene / "images",
             database=features,
             conf=conf,
-            num_workers=args.num_workers,
-            progress=False,
+            run={"num_workers": args.num_workers, "progress": False},
         )
         if not summary.ok:
             raise RuntimeError(f"{scene.name} {method}: extraction failed\n{summary.report()}")

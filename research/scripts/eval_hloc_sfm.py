@@ -54,8 +54,8 @@ def run_method(images: Path, out: Path, method: str, conf: dict, args) -> list[d
         images,
         hloc_features=feats,
         conf=conf,
-        depth_model=depth_model_of(method),
-        progress=False,
+        depth={"model": depth_model_of(method)},
+        run={"progress": False},
     )
     if not summary.ok:
         raise SystemExit(f"{method}: extraction failed\n{summary.report()}")

@@ -88,21 +88,19 @@ def extract_method(scene: Path, method: str, out: Path, args) -> Path:
     # then a variant's overrides, then the budget (methods.method_conf)
     overrides = json.loads(args.rect_conf) if args.rect_conf else {}
     conf = method_conf(method, args.variants, overrides, args.max_num_features)
-    kw = dict(conf=conf, depth_model=depth_model_of(method, args.depth_model) or "none")
+    depth = {"model": depth_model_of(method, args.depth_model) or "none"}
     if not is_plain(method):
-        kw["depth_path"] = args.depth_path
+        depth["path"] = args.depth_path
     t = time.perf_counter()
     groups = scene_cameras(scene)
     for k, ((model, params), names) in enumerate(groups.items(), 1):  # one call per camera
         summary = extract(
             scene,
             hloc_features=h5,
-            image_list=names,
-            camera_model=model,
-            camera_params=params,
-            num_workers=args.num_workers,
-            progress=not args.no_progress,
-            **kw,
+            conf=conf,
+            reader={"image_list": names, "camera_model": model, "camera_params": params},
+            depth=depth,
+            run={"num_workers": args.num_workers, "progress": not args.no_progress},
         )
         if not summary.ok:
             raise SystemExit(f"{scene.name}/{method}: extraction failed\n{summary.report()}")

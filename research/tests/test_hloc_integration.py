@@ -71,7 +71,9 @@ def sacre_coeur(tmp_path_factory):
     feats = root / "feats-sift.h5"
     conf = ExtractConf.from_dict(confs["sift"])
     conf.sift.max_num_features = NUM_FEATURES
-    summary = extract(images, hloc_features=feats, conf=conf, progress=False, depth_model=None)
+    summary = extract(
+        images, hloc_features=feats, conf=conf, depth={"model": None}, run={"progress": False}
+    )
     assert not summary.failed, summary.failed
     return SimpleNamespace(images=images, sift=SimpleNamespace(features=feats))
 

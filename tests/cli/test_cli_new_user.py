@@ -300,7 +300,7 @@ def test_zero_feature_budget_is_an_argument_error(images, tmp_path, capsys):
     conf = ExtractConf()
     conf.sift.max_num_features = 0  # set after construction: extract() checks again
     with pytest.raises(ValueError, match="at least 1"):
-        extract(images, database=db, depth_model="none", conf=conf, progress=False)
+        extract(images, database=db, conf=conf, depth={"model": "none"}, run={"progress": False})
     assert not db.exists()
 
 

@@ -86,11 +86,9 @@ def test_cli_extract_writes_both_formats_reports_bad_image_and_resumes(scene, tm
         images,
         database=db,
         hloc_features=h5,
-        depth_path=depths,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": PARAMS},
+        depth={"path": depths, "model": "none"},
+        run={"progress": False},
     )
     assert sorted(summary.skipped) == sorted(cols)
     assert list(summary.failed) == ["sub/broken.png"]
@@ -107,14 +105,13 @@ def test_extract_rectifies_with_depth_and_is_plain_without(scene, tmp_path):
     images, depths = scene
     names = ["sub/0.png", "sub/1.png"]
     kw = dict(
-        image_list=names,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"image_list": names, "camera_model": "PINHOLE", "camera_params": PARAMS},
+        run={"progress": False},
     )
-    with_depth = extract(images, hloc_features=tmp_path / "r.h5", depth_path=depths, **kw)
-    without = extract(images, hloc_features=tmp_path / "p.h5", **kw)
+    with_depth = extract(
+        images, hloc_features=tmp_path / "r.h5", depth={"path": depths, "model": "none"}, **kw
+    )
+    without = extract(images, hloc_features=tmp_path / "p.h5", depth={"model": "none"}, **kw)
     assert with_depth.ok and without.ok
     assert with_depth.plain == [] and sorted(without.plain) == names
     from rectified_colmap.sift import detect_sift
@@ -136,14 +133,14 @@ def test_single_camera_and_workers(scene, tmp_path):
     s = extract(
         images,
         database=db,
-        image_list=["sub/0.png", "sub/1.png", "sub/2.png"],
-        depth_path=depths,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        single_camera=True,
-        num_workers=2,
-        progress=False,
+        reader={
+            "image_list": ["sub/0.png", "sub/1.png", "sub/2.png"],
+            "camera_model": "PINHOLE",
+            "camera_params": PARAMS,
+            "single_camera": True,
+        },
+        depth={"path": depths, "model": "none"},
+        run={"num_workers": 2, "progress": False},
     )
     assert s.ok and len(s.done) == 3
     with sqlite3.connect(db) as con:
@@ -193,17 +190,14 @@ def test_each_image_is_decoded_once(scene, tmp_path, monkeypatch, camera):
 
     monkeypatch.setattr(cv2, "imread", counting_imread)
     monkeypatch.setattr(pycolmap, "infer_camera_from_image", counting_infer)
-    kw = dict(camera_model="PINHOLE", camera_params=PARAMS) if camera == "params" else {}
+    cams = dict(camera_model="PINHOLE", camera_params=PARAMS) if camera == "params" else {}
     s = extract(
         images,
         database=tmp_path / "db.db",
         hloc_features=tmp_path / "f.h5",
-        image_list=names,
-        depth_path=depths,
-        depth_model="none",
-        visualize=tmp_path / "viz",
-        progress=False,
-        **kw,
+        reader={"image_list": names, **cams},
+        depth={"path": depths, "model": "none"},
+        run={"visualize": tmp_path / "viz", "progress": False},
     )
     assert s.ok and sorted(s.done) == names
     assert len(list((tmp_path / "viz").glob("*.planes.png"))) == 3  # the pictures were drawn

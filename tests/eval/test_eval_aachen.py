@@ -85,8 +85,8 @@ def test_camera_database_feeds_extract(tmp_path, texture):
         tmp_path / "img",
         database=tmp_path / "c.db",
         hloc_features=tmp_path / "f.h5",
-        depth_model=None,
-        progress=False,
+        depth={"model": None},
+        run={"progress": False},
     )
     assert sorted(s.done) == sorted(cams) and not s.failed
     with pycolmap.Database.open(tmp_path / "c.db") as db:

@@ -138,10 +138,9 @@ def test_rerun_adding_hloc_file_keeps_database_and_matches(images, tmp_path, cap
         images,
         database=db,
         hloc_features=h5,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": PARAMS},
+        depth={"model": "none"},
+        run={"progress": False},
     )
     assert s.ok and s.done == [] and sorted(s.copied) == NAMES
     assert db_state(db) == before  # keypoints, descriptors, matches untouched
@@ -155,10 +154,9 @@ def test_rerun_adding_hloc_file_keeps_database_and_matches(images, tmp_path, cap
         images,
         database=db,
         hloc_features=h5,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": PARAMS},
+        depth={"model": "none"},
+        run={"progress": False},
     )
     assert sorted(s.skipped) == NAMES and not s.copied and not s.done
 
@@ -172,10 +170,9 @@ def test_hloc_first_then_database_gets_the_same_features(images, tmp_path):
         images,
         database=db,
         hloc_features=h5,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": PARAMS},
+        depth={"model": "none"},
+        run={"progress": False},
     )
     assert s.ok and s.done == [] and sorted(s.copied) == NAMES
     with h5py.File(h5, "r") as f:
@@ -201,10 +198,9 @@ def test_foreign_features_are_kept_and_reported_once(images, tmp_path, caplog):
         images,
         database=db,
         hloc_features=h5,
-        depth_model="none",
-        camera_model="PINHOLE",
-        camera_params=PARAMS,
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": PARAMS},
+        depth={"model": "none"},
+        run={"progress": False},
     )
     assert s.ok and s.done == [] and s.foreign == {str(db): len(NAMES)}
     assert db_state(db) == before
@@ -484,7 +480,11 @@ def test_per_image_problems_are_named_listed_and_leave_no_rows(images, tmp_path,
     db, h5 = tmp_path / "db.db", tmp_path / "f.h5"
     caplog.clear()
     s = extract(
-        root, database=db, hloc_features=h5, depth_path=depths, depth_model="none", progress=False
+        root,
+        database=db,
+        hloc_features=h5,
+        depth={"path": depths, "model": "none"},
+        run={"progress": False},
     )  # no camera flags: focal lengths are guessed
     assert not s.ok and list(s.failed) == ["sub/3.png"]
     assert "3.png.npy" in s.failed["sub/3.png"]

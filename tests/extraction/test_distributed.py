@@ -51,17 +51,16 @@ def street(tmp_path_factory):
     return root / "images", names, params
 
 
-def _extract(street, out: Path, **kw):
+def _extract(street, out: Path, single_camera: bool = True, depth_model=None, **run):
     images, _, params = street
-    kw.setdefault("single_camera", True)
+    reader = {"camera_model": "PINHOLE", "camera_params": params, "single_camera": single_camera}
     return extract(
         images,
         database=out / "db.db",
         hloc_features=out / "f.h5",
-        camera_model="PINHOLE",
-        camera_params=params,
-        progress=False,
-        **kw,
+        reader=reader,
+        depth=None if depth_model is None else {"model": depth_model},
+        run={"progress": False, **run},
     )
 
 
@@ -190,12 +189,10 @@ def test_merge_keeps_per_image_cameras_and_refuses_conflicts(street, tmp_path, c
         images,
         database=other / "db.db",
         hloc_features=other / "f.h5",
-        camera_model="PINHOLE",
-        camera_params=params,
-        depth_model="none",
         conf={"sift": {"max_num_features": 200}},
-        image_list=names[:1],
-        progress=False,
+        reader={"camera_model": "PINHOLE", "camera_params": params, "image_list": names[:1]},
+        depth={"model": "none"},
+        run={"progress": False},
     )
     target = tmp_path / "t"
     code = main(
@@ -292,9 +289,8 @@ def test_ray_flag_without_ray_is_a_clear_error(street, tmp_path, monkeypatch):
         extract(
             images,
             database=tmp_path / "db.db",
-            ray_address="local",
-            depth_model="none",
-            progress=False,
+            depth={"model": "none"},
+            run={"ray_address": "local", "progress": False},
         )
     assert not (tmp_path / "db.db").exists()
 

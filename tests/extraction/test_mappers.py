@@ -28,7 +28,9 @@ pytestmark = pytest.mark.skipif(
 def matched(tmp_path_factory):
     """The five photos extracted into a new database and matched exhaustively."""
     db = tmp_path_factory.mktemp("sceaux") / "db.db"
-    summary = extract(SCENE / "images", database=db, image_list=NAMES, progress=False)
+    summary = extract(
+        SCENE / "images", database=db, reader={"image_list": NAMES}, run={"progress": False}
+    )
     assert summary.ok and len(summary.done) == len(NAMES), summary.report()
     opts = pycolmap.FeatureMatchingOptions()
     opts.num_threads = 2

@@ -36,8 +36,8 @@ def test_method_conf_and_depth():
     mod = load_user_script("aachen_hloc")
     assert mod.method_conf("sift", None, 1024)["sift"]["max_num_features"] == 1024
     assert mod.method_conf("rectsift", "rectsift-fast", None)["rectify"]["tilt_steps"] == 0
-    assert mod.depth_args("sift", "x.onnx", None) == {"depth_model": None, "depth_path": None}
-    assert mod.depth_args("rectsift", None, None)["depth_model"] == "rectsift-lite0"
+    assert mod.depth_args("sift", "x.onnx", None) == {"model": None, "path": None}
+    assert mod.depth_args("rectsift", None, None)["model"] == "rectsift-lite0"
 
 
 @pytest.fixture(scope="module")

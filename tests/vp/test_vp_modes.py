@@ -46,7 +46,7 @@ def test_cli_orientation_flag_sets_vp_conf(monkeypatch, tmp_path):
         def report(self):
             return ""
 
-    def fake_extract(*args, conf=None, **kw):
+    def fake_extract(image_dir, database, hloc_features, conf, *args, **kw):
         seen["conf"] = conf
         return Summary()
 
