@@ -123,6 +123,15 @@ def true_normals(pairs) -> dict[str, np.ndarray]:
     return out
 
 
+def image_regions(pairs) -> dict[str, list[np.ndarray] | None]:
+    """image name -> the region of its pair where the plane is seen (``region0`` /
+    ``region1``; None: the whole image): the oracles' depth covers only the plane."""
+    out = {}
+    for p in pairs:
+        out[p.im0], out[p.im1] = p.region0, p.region1
+    return out
+
+
 def oracle_normals(pairs, cameras) -> dict[str, np.ndarray]:
     """image name -> (3,) plane normal from the ground-truth homography of its pair."""
     out = {}
@@ -135,7 +144,7 @@ def oracle_normals(pairs, cameras) -> dict[str, np.ndarray]:
 
 
 def extract_method(
-    method: str, names: list[str], root: Path, cameras, normals, args, out: Path
+    method: str, names: list[str], root: Path, cameras, normals, regions, args, out: Path
 ) -> Path:
     """Features of ``method`` for every image -> the hloc file (reused if it exists);
     ``normals``: oracle name -> {image: (3,) normal}; the CPU seconds of each image
@@ -187,7 +196,7 @@ def extract_method(
                 depth = source(rgb, cam, name)
             elif oracle is not None:
                 w, h = scaled_size(cam.width, cam.height, conf.normals.work_max_size)
-                depth = plane_depth(cam, normals[oracle][name], (h, w))  # exact depth
+                depth = plane_depth(cam, normals[oracle][name], (h, w), regions[name])
             res = extract_image(rgb, cam, depth, conf, np.random.default_rng(0))
             cpu[name] = time.process_time() - t0
             writer.write(name, res.features, (cam.width, cam.height))
@@ -277,7 +286,11 @@ def main(argv=None) -> int:
         normals["oracle"] = oracle_normals(pairs, cameras)
     if "oracle_true" in bases:
         normals["oracle_true"] = true_normals(pairs)
-    feats = {m: extract_method(m, names, args.data, cameras, normals, args, out) for m in methods}
+    regions = image_regions(pairs)
+    feats = {
+        m: extract_method(m, names, args.data, cameras, normals, regions, args, out)
+        for m in methods
+    }
     conf = HomographyConf(region_ransac=args.region_ransac)
     records, cpu = [], {}
     for m in methods:  # one method at a time: its matching and RANSAC CPU seconds
