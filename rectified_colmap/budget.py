@@ -1,4 +1,8 @@
-"""The feature budget of one image, in one place.
+"""The budget of one image, in one place: the views' pixels and the features.
+
+The rectified views of an image together have at most ``rectify.max_view_pixels_factor``
+x the image's pixels (:func:`view_pixel_budget`): a budget relative to the image, so small
+photos and video frames pay the same share as large ones.
 
 Plain SIFT keeps COLMAP's budget (``sift.max_num_features``: detected points, a point with
 two orientations gives two keypoints) on the whole image, exactly as COLMAP. The rectified
@@ -16,6 +20,16 @@ import numpy as np
 from .config import ExtractConf
 from .features import Features
 from .geometry import singular_values_2x2
+from .sift import sift_input_size
+
+
+def view_pixel_budget(shape: tuple[int, int], conf: ExtractConf) -> float:
+    """Pixels all rectified views of an image of ``shape`` (h, w) may have together:
+    ``rectify.max_view_pixels_factor`` x the pixels of the image as SIFT sees it
+    (downscaled to ``sift.max_image_size``, as COLMAP), so that the views cost about that
+    multiple of plain SIFT's time on any image size."""
+    w, h = sift_input_size(shape[1], shape[0], conf.sift)
+    return conf.rectify.max_view_pixels_factor * w * h
 
 
 def keypoint_cap(plain_count: int, extra_frac: float) -> int:

@@ -42,11 +42,9 @@ class RectifyConf:
 
     max_viewing_angle_deg: float = 86.0  # crop pixels seen more obliquely than this
     min_rectify_angle_deg: float = 30.0  # patches seen more frontally: left to plain SIFT
-    min_texture: float = 5.0  # patches with a lower median Sobel magnitude: plain SIFT
+    min_texture: float = 5.0  # work cells with a lower Sobel magnitude get no view pixels
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
-    max_patch_area_factor: float = 1.0  # cap on a view's area / its patch's area in the image
-    max_total_area_factor: float = 0.8  # cap on all views' area / the image's area
-    max_total_pixels: float = 2e6  # cap on all views' pixels, whatever the image size
+    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
@@ -177,7 +175,7 @@ confs: dict[str, dict[str, Any]] = {
     "rectsift-fast": {
         "normals": {"work_max_size": 480},
         "vp": {"line_hypotheses": 1},
-        "rectify": {"tilt_steps": 0, "max_total_pixels": 0.5e6},
+        "rectify": {"tilt_steps": 0, "max_view_pixels_factor": 1.0},
         "sift": {"max_num_features": 4096},
     },
     # exactly plain COLMAP SIFT, whatever the depth: no patch can pass, no vanishing points
@@ -192,6 +190,7 @@ confs: dict[str, dict[str, Any]] = {
 _REPLACING = "retired with the replacing mode: plain SIFT's features are always all kept"
 _FIXED = "retired: now a fixed constant of its module"
 _DEPTH_FREE = "retired with the depth-free planes (research/: vp_planes)"
+_VIEW_BUDGET = "retired: the views' pixels are rectify.max_view_pixels_factor x the image's"
 RETIRED_KEYS: dict[str, str] = {
     "depth": "retired: a disparity map's shift is always fitted to orthogonal planes",
     "planes.num_samples": _FIXED + " (planes.NUM_SAMPLES)",
@@ -199,6 +198,9 @@ RETIRED_KEYS: dict[str, str] = {
     "planes.num_iters": _FIXED + " (planes.NUM_ITERS)",
     "rectify.keep_plain": _REPLACING,
     "rectify.tilt_bank_of": "retired: tilt neighbours are always around plane hypotheses",
+    "rectify.max_patch_area_factor": _VIEW_BUDGET,
+    "rectify.max_total_area_factor": _VIEW_BUDGET,
+    "rectify.max_total_pixels": _VIEW_BUDGET,
     "dedup.enabled": "retired: near-duplicates are always resolved",
     "dedup.only_across": "retired: twins are always sought across sources",
     "dedup.keep_rectified_tilt_deg": _REPLACING,

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .budget import keypoint_cap, largest_scales, view_budgets
+from .budget import keypoint_cap, largest_scales, view_budgets, view_pixel_budget
 from .config import ExtractConf
 from .dedup import rectified_to_keep
 from .depth import DepthMap
@@ -99,7 +99,8 @@ def extract_image(
     planes, normals = image_planes(camera, depth, conf, rng, t)
     planes = with_vanishing_points(gray, camera, planes, conf, rng, t)
     with timed(t, "homographies"):
-        views = plan_views(gray, camera, planes.patches, planes.labels.shape, conf.rectify)
+        pixels = view_pixel_budget(gray.shape, conf)
+        views = plan_views(gray, camera, planes.patches, planes.labels.shape, conf.rectify, pixels)
     result = ImageResult(
         Features.empty(),
         replace(planes, patches=views.patches),

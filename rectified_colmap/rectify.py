@@ -186,10 +186,6 @@ class PatchView:
     lo: np.ndarray
     hi: np.ndarray
     """Extent of the patch in virtual normalised coordinates, half a cell of margin."""
-    content: float
-    """Rectified area of the patch at f = 1."""
-    orig_area: float
-    """Area of the patch's cells in original pixels."""
 
 
 def plan_rectification(
@@ -205,8 +201,7 @@ def plan_rectification(
 
     The virtual focal f makes the median smaller singular value of the image->rectified
     Jacobian over the patch 1 (nothing shrinks); the size is then capped by
-    conf.max_patch_side and by conf.max_patch_area_factor x the patch's area in original
-    pixels (the rectified area of the patch itself, not of its bounding box), scaling f down.
+    conf.max_patch_side, scaling f down.
     """
     view = patch_view(camera, patch, conf)
     if view is None:
@@ -251,7 +246,6 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
         return None
     # Margin of half a work cell around the cell centres, in virtual normalised units.
     half = np.nanmax(0.5 * np.abs(J) @ np.array([sx, sy]), axis=0)
-    det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
     return PatchView(
         normal=n,
         R=R,
@@ -260,8 +254,6 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
         f=1.0 / np.nanmedian(smin),
         lo=np.array([u[0].min(), u[1].min()]) - half,
         hi=np.array([u[0].max(), u[1].max()]) + half,
-        content=np.nanmean(det) * len(kept) * sx * sy,
-        orig_area=len(kept) * sx * sy,
     )
 
 
@@ -269,7 +261,7 @@ def view_camera(
     view: PatchView, conf: RectifyConf, scale: float
 ) -> tuple[np.ndarray, tuple[int, int]]:
     """The virtual intrinsics K (3, 3) and size (width, height) of a patch's view: the
-    caps of plan_rectification, then ``scale``."""
+    side cap of plan_rectification, then ``scale`` (at most 1)."""
     f, lo, hi = view.f, view.lo, view.hi
 
     def size_for(f):
@@ -279,9 +271,6 @@ def view_camera(
     extra_scale, scale = min(float(scale), 1.0), 1.0
     if size.max() > conf.max_patch_side:
         scale = min(scale, (conf.max_patch_side - 2 * conf.border) / ((hi - lo).max() * f))
-    area_cap = conf.max_patch_area_factor * view.orig_area
-    if view.content * f * f > area_cap:
-        scale = min(scale, np.sqrt(area_cap / (view.content * f * f)))
     scale *= extra_scale
     if scale < 1.0:
         f *= max(scale, 1e-9)

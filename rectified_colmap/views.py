@@ -6,11 +6,13 @@ rectified_colmap.vp.hypotheses). Output: a :class:`ViewSet`: the patches (tilt n
 appended), their ``Rectification``s (rectified_colmap.rectify) within the image's pixel
 budget, the work-grid cells each view covers and the first view covering each cell.
 
-- ``patches_worth_rectifying``: near-frontal and textureless patches are left to plain SIFT;
+- ``textured_patches``: each patch cut to its textured cells, so that no view spends pixels
+  on sky, blank walls or what lies around a plane;
+- ``patches_worth_rectifying``: near-frontal patches and small ones are left to plain SIFT;
 - ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
   hypotheses' views (orientations from lines err most);
-- ``rectifications_within_area``: every view planned, then scaled down together to the
-  image's budget;
+- ``rectifications_within_budget``: every view planned, then scaled down together to the
+  image's pixel budget, a multiple of its own pixels;
 - ``viewing_masks`` / ``viewing_coverage``: the cells each view covers.
 """
 
@@ -30,6 +32,12 @@ from .planes import HYPOTHESIS_AXIS, Patch
 from .rectify import Rectification, finish_rectification, patch_view, view_camera
 
 logger = logging.getLogger(__name__)
+
+MIN_VIEW_AREA_FRAC = 0.005
+"""Patches whose textured cells cover less of the image than this get no view (as
+planes.min_area_frac drops smaller components)."""
+TEXTURE_MARGIN = 2
+"""Work cells around a textured cell that a view keeps (``textured_patches``)."""
 
 
 @dataclass
@@ -56,12 +64,18 @@ def plan_views(
     patches: list[Patch],
     shape: tuple[int, int],
     conf: RectifyConf,
+    pixel_budget: float | None = None,
 ) -> ViewSet:
     """The views of an image with these plane patches on its (h, w) work grid ``shape``
-    (the module docstring's steps)."""
-    todo = patches_worth_rectifying(gray, camera, patches, conf)
+    (the module docstring's steps), all of them within ``pixel_budget`` pixels (default:
+    conf.max_view_pixels_factor x the image's pixels; the pipeline's counts the image as
+    SIFT sees it: rectified_colmap.budget.view_pixel_budget)."""
+    if pixel_budget is None:
+        pixel_budget = conf.max_view_pixels_factor * camera.width * camera.height
+    patches = textured_patches(gray, patches, conf.min_texture)
+    todo = patches_worth_rectifying(camera, patches, conf)
     patches, todo = with_tilt_neighbours(camera, patches, todo, conf)
-    rects = rectifications_within_area(camera, patches, todo, conf)
+    rects = rectifications_within_budget(camera, patches, todo, conf, pixel_budget)
     masks = viewing_masks(camera, rects, patches, shape, conf.max_viewing_angle_deg)
     return ViewSet(patches, rects, masks, viewing_coverage(masks))
 
@@ -82,22 +96,28 @@ def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
     return angle
 
 
-def patch_evidence(
-    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per patch: (median viewing angle in degrees (``viewing_angles``), median texture),
-    each (n,).
-
-    Texture is the Sobel gradient magnitude of the image resampled to the work grid
-    (INTER_AREA; 8 x grey levels per work cell; sky and blank walls are under ~5, Strecha
-    facades ~40, cobblestones ~15)."""
-    if not patches:
-        return np.zeros(0), np.zeros(0)
-    h, w = patches[0].mask.shape
+def texture_map(gray: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) float32 Sobel gradient magnitude of the image resampled (INTER_AREA) to the
+    work grid ``shape``: 8 x grey levels per cell (sky and blank walls are under ~5,
+    Strecha facades ~40, cobblestones ~15)."""
+    h, w = shape
     g = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
-    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-    texture = np.array([np.median(mag[p.mask]) if p.mask.any() else 0.0 for p in patches])
-    return viewing_angles(camera, patches), texture
+    return np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
+
+
+def textured_patches(gray: np.ndarray, patches: list[Patch], min_texture: float) -> list[Patch]:
+    """Each patch cut to its textured cells: ``texture_map`` >= ``min_texture``, dilated by
+    TEXTURE_MARGIN cells (a feature's support reaches past a textured cell). A view then
+    spends no pixels on sky, blank walls or what lies around a plane, and a plane seen in a
+    small part of a mostly blank image still gets its view. Indices are kept (a patch may
+    end up empty)."""
+    if not patches:
+        return patches
+    textured = texture_map(gray, patches[0].mask.shape) >= min_texture
+    k = 2 * TEXTURE_MARGIN + 1
+    textured = cv2.dilate(textured.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    masks = [p.mask & textured for p in patches]
+    return [Patch(m, p.axis, p.normal, float(m.mean())) for p, m in zip(patches, masks)]
 
 
 def tilt_neighbours(
@@ -159,44 +179,44 @@ def with_tilt_neighbours(
 
 
 def patches_worth_rectifying(
-    gray: np.ndarray, camera: pycolmap.Camera, patches: list[Patch], conf: RectifyConf
+    camera: pycolmap.Camera, patches: list[Patch], conf: RectifyConf
 ) -> list[int]:
     """Indices of the patches to rectify. Left to plain SIFT (at full budget: the pipeline
     fills from plain SIFT) are patches seen nearly frontally (median viewing angle under
-    conf.min_rectify_angle_deg: the warp would change little) and patches without texture
-    (median gradient under conf.min_texture: sky, blank walls)."""
-    angle, texture = patch_evidence(gray, camera, patches)
-    keep = (angle >= conf.min_rectify_angle_deg) & (texture >= conf.min_texture)
+    conf.min_rectify_angle_deg: the warp would change little) and patches of less than
+    MIN_VIEW_AREA_FRAC of the image (after ``textured_patches``: too little texture)."""
+    angle = viewing_angles(camera, patches)
+    area = np.array([p.mask.mean() for p in patches])
+    keep = (angle >= conf.min_rectify_angle_deg) & (area >= MIN_VIEW_AREA_FRAC)
     if len(patches):
         logger.debug(
-            "patches: viewing angle %s, texture %s -> rectify %s",
+            "patches: viewing angle %s, textured area %s -> rectify %s",
             np.round(angle),
-            np.round(texture),
+            np.round(area, 3),
             keep.astype(int),
         )
     return [int(i) for i in np.flatnonzero(keep)]
 
 
-def rectifications_within_area(
-    camera: pycolmap.Camera, patches: list[Patch], indices: list[int], conf: RectifyConf
+def rectifications_within_budget(
+    camera: pycolmap.Camera,
+    patches: list[Patch],
+    indices: list[int],
+    conf: RectifyConf,
+    pixel_budget: float,
 ) -> list[Rectification]:
-    """Rectifications (plan_rectification) of the given patches, scaled down together when
-    their summed size exceeds ``conf.max_total_area_factor`` x the image area x the
-    patches' overlap (summed patch areas / area of their union: 1 for disjoint patches; up
-    to 3 for depth-free whole-image warps, which so keep the resolution that disjoint
-    patches of their size would get), or ``conf.max_total_pixels``. Each patch's view is
-    computed once, and its mask only at the final scale."""
+    """Rectifications (plan_rectification) of the given patches, scaled down together
+    when their summed size (w x h) exceeds ``pixel_budget`` (to within a view's border
+    when views are tiny). Each patch's view is computed once, and its mask only at the
+    final scale."""
     views = [(i, patch_view(camera, patches[i], conf)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
-    sizes = [view_camera(v, conf, 1.0)[1] for _, v in views]
-    total = sum(w * h for w, h in sizes)
-    masks = [patches[i].mask for i in indices]
-    overlap = 1.0
-    if masks:
-        overlap = sum(int(m.sum()) for m in masks) / max(1, int(np.logical_or.reduce(masks).sum()))
-    budget = conf.max_total_area_factor * camera.width * camera.height * overlap
-    budget = min(budget, conf.max_total_pixels)
-    scale = float(np.sqrt(budget / total)) if total > budget else 1.0
+    scale = 1.0
+    for _ in range(4):  # the borders do not scale: a few steps to fit
+        total = sum(w * h for w, h in (view_camera(v, conf, scale)[1] for _, v in views))
+        if total <= pixel_budget:
+            break
+        scale *= 0.999 * float(np.sqrt(pixel_budget / total))
     rects = (finish_rectification(camera, v, i, conf, scale) for i, v in views)
     return [r for r in rects if r is not None]
 

@@ -1,9 +1,14 @@
+import re
+from dataclasses import fields
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
 from rectified_colmap import conventions
 from rectified_colmap.config import RETIRED_KEYS, ExtractConf, confs, merge_conf
+from rectified_colmap.eval.config import EvalConf, HomographyConf, LocalizeConf
 
 
 def test_conf_from_dict_merges_and_rejects_unknown():
@@ -81,3 +86,25 @@ def test_opencv_homography_moves_pixels_as_in_colmap_frame():
     cx = (out[ys, xs] * xs).sum() / out[ys, xs].sum() + 0.5  # back to COLMAP
     cy = (out[ys, xs] * ys).sum() / out[ys, xs].sum() + 0.5
     np.testing.assert_allclose([cx, cy], [7.0, 5.0], atol=1e-6)
+
+
+def _documented_keys(section_body: str) -> dict[str, str]:
+    """`key` -> `default` of a docs/configuration.md table."""
+    return dict(re.findall(r"^\| `(\w+)` \| `([^`]*)`", section_body, flags=re.M))
+
+
+def test_configuration_doc_lists_every_key_with_its_default_and_no_retired_one():
+    doc = (Path(__file__).parents[1] / "docs" / "configuration.md").read_text()
+    parts = re.split(r"^## `(\w+)`: \w+$|^## (\w+) \(.*$", doc, flags=re.M)
+    bodies = {}
+    for i in range(1, len(parts), 3):
+        bodies[parts[i] or parts[i + 1]] = parts[i + 2]
+    classes = {f.name: type(getattr(ExtractConf(), f.name)) for f in fields(ExtractConf)}
+    classes |= {c.__name__: c for c in (EvalConf, HomographyConf, LocalizeConf)}
+    assert set(bodies) == set(classes)
+    for name, cls in classes.items():
+        documented = _documented_keys(bodies[name])
+        defaults = {f.name: getattr(cls(), f.name) for f in fields(cls)}
+        assert documented.keys() == defaults.keys(), name
+        for key, value in defaults.items():
+            assert documented[key] in (repr(value), str(value)), (name, key)

@@ -12,7 +12,12 @@ from rectified_colmap.depth import DepthMap
 from rectified_colmap.sift import detect_sift
 from rectified_colmap.pipeline import extract_image, timed
 from rectified_colmap.planes import Patch
-from rectified_colmap.views import patch_evidence, patches_worth_rectifying
+from rectified_colmap.views import (
+    TEXTURE_MARGIN,
+    patches_worth_rectifying,
+    textured_patches,
+    viewing_angles,
+)
 from tests.conftest import look_at, plane_view, textured_image
 from tests.scenes import SINGLE_VIEW
 
@@ -152,25 +157,32 @@ def test_patches_start_at_octave_0_from_the_pixels_per_feature_threshold(texture
     assert np.quantile(upsampled.scales, 0.1) < 0.8 * np.quantile(octave0.scales, 0.1)
 
 
-def test_patch_evidence_viewing_angle_and_texture():
+def test_viewing_angles_texture_masks_and_which_patches_get_views():
     h, w = 36, 48  # work grid of the 480x360 camera (10 px cells)
-    mask = np.zeros((h, w), bool)
-    mask[17:19, 23:25] = True  # the 4 cells around the principal point (240, 180)
+    centre = np.zeros((h, w), bool)
+    centre[17:19, 23:25] = True  # the 4 cells around the principal point (240, 180)
     tilt = np.deg2rad(40.0)
     n = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])  # faces the camera, 40 deg tilt
-    textured = textured_image(SIZE[1], SIZE[0], 3)
-    blank = np.full((SIZE[1], SIZE[0]), 128, np.uint8)
-    patches = [Patch(mask, 0, n, mask.mean()), Patch(mask, 1, np.array([0, 0, -1.0]), mask.mean())]
-    angle, tex = patch_evidence(textured, CAMERA, patches)
+    frontal = np.array([0, 0, -1.0])
+    angle = viewing_angles(CAMERA, [Patch(centre, 0, n, 0.0), Patch(centre, 1, frontal, 0.0)])
     # Cells are 5 px (0.7 deg) from the axis: the angles are 40 and ~1 degrees.
     assert abs(angle[0] - 40.0) < 1.0 and angle[1] < 1.5
-    assert tex[0] > 20
-    _, tex_blank = patch_evidence(blank, CAMERA, patches)
-    assert np.all(tex_blank == 0)
-    conf = ExtractConf().rectify
-    conf.min_rectify_angle_deg, conf.min_texture = 20.0, 5.0
-    assert patches_worth_rectifying(textured, CAMERA, patches, conf) == [0]
-    assert patches_worth_rectifying(blank, CAMERA, patches, conf) == []
+    # a textured left half, a blank right half: each patch keeps its textured cells and
+    # TEXTURE_MARGIN more (the image's texture_map is measured on the same grid)
+    img = textured_image(SIZE[1], SIZE[0], 3)
+    img[:, SIZE[0] // 2 :] = 128
+    whole = np.ones((h, w), bool)
+    steep = np.array([np.sin(1.2), 0.0, -np.cos(1.2)])  # 69 deg
+    patches = [Patch(whole, 0, steep, 1.0), Patch(whole, 1, frontal, 1.0)]
+    cut = textured_patches(img, patches, min_texture=5.0)
+    cols = np.flatnonzero(cut[0].mask.any(0))
+    assert cols.min() == 0 and w // 2 <= cols.max() <= w // 2 + TEXTURE_MARGIN
+    assert cut[0].mask.all(0)[: w // 2 - 1].all() and cut[0].area_frac < 0.6
+    conf = ExtractConf().rectify  # rectified from 30 degrees: the frontal patch is left
+    assert patches_worth_rectifying(CAMERA, cut, conf) == [0]
+    blank = np.full((SIZE[1], SIZE[0]), 128, np.uint8)
+    assert not textured_patches(blank, patches, 5.0)[0].mask.any()
+    assert patches_worth_rectifying(CAMERA, textured_patches(blank, patches, 5.0), conf) == []
 
 
 def test_frontal_plane_is_left_to_plain_sift_oblique_one_is_rectified(texture):

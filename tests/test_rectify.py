@@ -134,7 +134,7 @@ def test_jacobian_matches_central_differences(name):
 def test_plan_nothing_shrinks_and_caps():
     cam = camera("PINHOLE")
     n = unit(NORMALS[1])  # ground-like, strongly foreshortened
-    big = RectifyConf(max_patch_area_factor=100.0, max_patch_side=10000, border=4)
+    big = RectifyConf(max_patch_side=10000, border=4)
     rect = plan_rectification(cam, full_patch(n), 3, big)
     assert rect.patch_index == 3 and rect.mask.shape == rect.size[::-1]
     # Median smaller singular value of d(rectified)/d(image) over the patch is 1.
@@ -151,19 +151,17 @@ def test_plan_nothing_shrinks_and_caps():
     assert np.median(smin) == pytest.approx(1.0, rel=1e-3)
     # Every patch cell is inside the rectified image, with the border margin.
     assert q.min() >= 4 - 1e-6 and (q.max(0) <= np.array(rect.size) - 4 + 1e-6).all()
-    # Side cap and area cap.
-    capped = plan_rectification(
-        cam, full_patch(n), 0, RectifyConf(max_patch_side=100, max_patch_area_factor=100)
-    )
+    # The side cap, and a scale (the image's pixel budget) on top of it.
+    capped = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_side=100))
     assert max(capped.size) <= 100 and capped.K[0, 0] < rect.K[0, 0]
-    area = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_area_factor=0.5))
-    assert area.mask.sum() <= 0.5 * W * H * 1.05
+    half = plan_rectification(cam, full_patch(n), 0, big, scale=0.5)
+    assert half.K[0, 0] == pytest.approx(0.5 * rect.K[0, 0])
 
 
 def test_mask_excludes_grazing_rays_and_none_when_nothing_left():
     cam = camera("PINHOLE")
     n = unit([0.0, -1.0, -0.15])  # ground seen at grazing angles
-    conf = RectifyConf(max_viewing_angle_deg=60, max_patch_area_factor=100, max_patch_side=4000)
+    conf = RectifyConf(max_viewing_angle_deg=60, max_patch_side=4000)
     rect = plan_rectification(cam, full_patch(n), 0, conf)
     q = np.stack(np.nonzero(rect.mask)[::-1], 1) + 0.5
     xy, _ = rectified_to_image(cam, rect, q)

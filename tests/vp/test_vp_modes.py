@@ -9,7 +9,7 @@ from rectified_colmap_research import synth
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.pipeline import with_vanishing_points
 from rectified_colmap.planes import Patch, detect_planes
-from rectified_colmap.views import plan_views, rectifications_within_area
+from rectified_colmap.views import plan_views, rectifications_within_budget
 from tests.scenes import SINGLE_VIEW
 
 W, H = 480, 360
@@ -101,14 +101,21 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
     assert errs[False] > 8.0 and errs[True] < 1.0, errs
 
 
-def test_overlapping_patches_keep_their_resolution():
-    """The total-area budget scales with the overlap: two identical (fully overlapping)
-    patches are planned at the size of one alone."""
+def test_views_share_the_pixel_budget():
+    """All views of an image together stay within the pixel budget: two views of the same
+    patch get half the pixels each that one alone gets, and a budget beyond the views'
+    own size leaves them at full resolution."""
     camera = synth.pinhole_camera(W, H, 0.9 * W)
     mask = np.ones((H // 4, W // 4), bool)
     patch = Patch(mask, 0, np.array([0.8, 0.0, -0.6]), 1.0)
-    conf = ExtractConf()
-    one = rectifications_within_area(camera, [patch], [0], conf.rectify)
-    two = rectifications_within_area(camera, [patch, patch], [0, 1], conf.rectify)
+    conf = ExtractConf().rectify
+    budget = 0.5 * W * H
+    one = rectifications_within_budget(camera, [patch], [0], conf, budget)
+    two = rectifications_within_budget(camera, [patch, patch], [0, 1], conf, budget)
     assert len(one) == 1 and len(two) == 2
-    assert one[0].size == two[0].size == two[1].size
+    pixels = [r.size[0] * r.size[1] for r in one + two]
+    assert pixels[0] <= budget and pixels[1] + pixels[2] <= budget
+    assert abs(pixels[1] / pixels[0] - 0.5) < 0.05
+    free = rectifications_within_budget(camera, [patch], [0], conf, 1e12)
+    f = free[0].K[0, 0]
+    assert abs(one[0].K[0, 0] / f - np.sqrt(budget / (free[0].size[0] * free[0].size[1]))) < 0.02
