@@ -1,8 +1,9 @@
 """The budget of one image, in one place: the views' pixels and the features.
 
 The rectified views of an image together have at most ``rectify.max_view_pixels_factor``
-x the image's pixels (:func:`view_pixel_budget`): a budget relative to the image, so small
-photos and video frames pay the same share as large ones.
+x the image's pixels (:func:`view_pixel_budget`; pixels beyond those that SIFT's budget
+can use are not counted): a budget relative to the image, so small photos and video
+frames pay the same share as large ones.
 
 Plain SIFT keeps COLMAP's budget (``sift.max_num_features``: detected points, a point with
 two orientations gives two keypoints) on the whole image, exactly as COLMAP. The rectified
@@ -26,10 +27,13 @@ from .sift import sift_input_size
 def view_pixel_budget(shape: tuple[int, int], conf: ExtractConf) -> float:
     """Pixels all rectified views of an image of ``shape`` (h, w) may have together:
     ``rectify.max_view_pixels_factor`` x the pixels of the image as SIFT sees it
-    (downscaled to ``sift.max_image_size``, as COLMAP), so that the views cost about that
-    multiple of plain SIFT's time on any image size."""
+    (downscaled to ``sift.max_image_size``, as COLMAP), counted up to what SIFT's budget
+    can use: ``sift.max_num_features`` x ``sift.patch_octave0_pixels_per_feature`` (from
+    that many pixels per feature on, the budget fills without the upsampled octave: finer
+    detail adds no features the budget keeps, in the image or in its views)."""
     w, h = sift_input_size(shape[1], shape[0], conf.sift)
-    return conf.rectify.max_view_pixels_factor * w * h
+    usable = conf.sift.max_num_features * conf.sift.patch_octave0_pixels_per_feature
+    return conf.rectify.max_view_pixels_factor * min(w * h, usable)
 
 
 def keypoint_cap(plain_count: int, extra_frac: float) -> int:

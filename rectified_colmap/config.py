@@ -74,7 +74,8 @@ class SiftConf:
     upright: bool = False
     max_image_size: int = 3200  # ...to here (larger images are downscaled, as COLMAP)
     patch_first_octave: int = -1  # first octave in rectified views
-    patch_octave0_pixels_per_feature: float = 150.0  # from here views start at octave 0
+    patch_octave0_pixels_per_feature: float = 150.0  # from here views start at octave 0; and the
+    # pixels the views budget counts: this x max_num_features (budget.view_pixel_budget)
     coarse_first: bool = True  # large images: coarse octaves first (features.detect_sift)
     coarse_first_pixels_per_feature: float = 500.0  # ...from this many pixels per feature
     patch_budget_factor: float = 2.0  # views' SIFT budget / the features they may add

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.budget import keypoint_cap, largest_scales
+from rectified_colmap.budget import keypoint_cap, largest_scales, view_pixel_budget
 from rectified_colmap.config import DedupConf, ExtractConf
 from rectified_colmap.dedup import (
     duplicate_fraction,
@@ -222,3 +222,27 @@ def test_pipeline_exact_pool_is_plain_sift_where_coarse_first_pays():
     conf.sift.pool_coarse_first_min_pixels = 0  # as on a photo of 3 MP or more
     assert pool_coarse_first(img.shape, 300, conf.sift)
     assert plain_part(conf) != exact
+
+
+def test_view_pixel_budget_is_relative_to_the_image_up_to_what_sift_can_use():
+    """The views' pixels: rectify.max_view_pixels_factor x the image's pixels as SIFT sees
+    it (sift.max_image_size), counted up to sift.max_num_features x
+    sift.patch_octave0_pixels_per_feature."""
+    conf = ExtractConf.from_dict(
+        {
+            "rectify": {"max_view_pixels_factor": 2.0},
+            "sift": {"max_num_features": 8192, "patch_octave0_pixels_per_feature": 150.0},
+        }
+    )
+    assert view_pixel_budget((480, 640), conf) == 2.0 * 640 * 480
+    assert view_pixel_budget((1000, 1000), conf) == 2.0 * 1000 * 1000
+    assert view_pixel_budget((1024, 1536), conf) == 2.0 * 8192 * 150  # 1.57 MP > 1.23 MP
+    assert view_pixel_budget((4000, 6000), conf) == 2.0 * 8192 * 150
+    fewer = ExtractConf.from_dict({"sift": {"max_num_features": 1024}})
+    assert view_pixel_budget((480, 640), fewer) == pytest.approx(
+        fewer.rectify.max_view_pixels_factor * 1024 * fewer.sift.patch_octave0_pixels_per_feature
+    )
+    downscaled = ExtractConf.from_dict({"sift": {"max_image_size": 640}})
+    assert view_pixel_budget((1024, 1536), downscaled) == pytest.approx(
+        downscaled.rectify.max_view_pixels_factor * 640 * 427
+    )

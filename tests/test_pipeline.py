@@ -147,8 +147,10 @@ def test_patches_start_at_octave_0_from_the_pixels_per_feature_threshold(texture
         f = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
         return f.subset(f.patch >= 0)
 
+    # the threshold also counts the image's pixels for the views' budget
+    # (budget.view_pixel_budget): the runs compared share it
     at_threshold = patch_features(patch_octave0_pixels_per_feature=43.0)
-    octave0 = patch_features(patch_first_octave=0)
+    octave0 = patch_features(patch_first_octave=0, patch_octave0_pixels_per_feature=43.0)
     upsampled = patch_features(patch_octave0_pixels_per_feature=44.0)
     assert len(at_threshold) > 100
     np.testing.assert_array_equal(at_threshold.keypoints, octave0.keypoints)
