@@ -64,14 +64,11 @@ def plan_views(
     patches: list[Patch],
     shape: tuple[int, int],
     conf: RectifyConf,
-    pixel_budget: float | None = None,
+    pixel_budget: float,
 ) -> ViewSet:
     """The views of an image with these plane patches on its (h, w) work grid ``shape``
-    (the module docstring's steps), all of them within ``pixel_budget`` pixels (default:
-    conf.max_view_pixels_factor x the image's pixels; the pipeline's counts the image as
-    SIFT sees it: rectified_colmap.budget.view_pixel_budget)."""
-    if pixel_budget is None:
-        pixel_budget = conf.max_view_pixels_factor * camera.width * camera.height
+    (the module docstring's steps), all of them within ``pixel_budget`` pixels
+    (rectified_colmap.budget.view_pixel_budget)."""
     patches = textured_patches(gray, patches, conf.min_texture)
     todo = patches_worth_rectifying(camera, patches, conf)
     patches, todo = with_tilt_neighbours(camera, patches, todo, conf)

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
+from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.camera import make_camera, rays_to_image
 from rectified_colmap.config import RectifyConf
 from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
@@ -329,7 +330,8 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
         w, h = scaled_size(640, 480, conf.normals.work_max_size)
         # the erring orientation as a plane hypothesis (a whole-image patch), as the lines give
         hypothesis = Patch(np.ones((h, w), bool), HYPOTHESIS_AXIS, n_err, 1.0)
-        views = plan_views(img0, cam, [hypothesis], (h, w), conf.rectify)
+        pixels = view_pixel_budget(img0.shape, conf)
+        views = plan_views(img0, cam, [hypothesis], (h, w), conf.rectify, pixels)
         assert len(views.rects) == 1 + 2 * steps
         a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
         b = extract_image(img1, cam, None, conf).features  # plain SIFT

@@ -26,6 +26,7 @@ import numpy as np
 import pycolmap
 
 from rectified_colmap import camera as cam_utils
+from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.conventions import to_opencv_points
 from rectified_colmap.geometry import scaled_size
@@ -239,7 +240,8 @@ def extract_depth_free(
         if conf.vp.line_hypotheses > 0:
             planes = add_plane_hypotheses(camera, planes, lines.segments, conf)
     with timed(t, "homographies"):
-        views = plan_views(gray, camera, planes.patches, (h, w), conf.rectify)
+        pixels = view_pixel_budget(gray.shape, conf)
+        views = plan_views(gray, camera, planes.patches, (h, w), conf.rectify, pixels)
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift)
     feats = features_on_top(gray, camera, views, plain, conf, None, t) if views else plain

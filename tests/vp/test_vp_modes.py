@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap_research import synth
+from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.pipeline import with_vanishing_points
 from rectified_colmap.planes import Patch, detect_planes
@@ -90,7 +91,8 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
         conf.rectify.min_rectify_angle_deg = 0.0  # every patch: their normals are checked
         planes = detect_planes(bad, conf.planes, np.random.default_rng(0))
         planes = with_vanishing_points(gray, camera, planes, conf, np.random.default_rng(0), {})
-        views = plan_views(gray, camera, planes.patches, planes.labels.shape, conf.rectify)
+        pixels = view_pixel_budget(gray.shape, conf)
+        views = plan_views(gray, camera, planes.patches, planes.labels.shape, conf.rectify, pixels)
         e = []
         for rect in views.rects:
             n = r.normals[views.patches[rect.patch_index].mask]
