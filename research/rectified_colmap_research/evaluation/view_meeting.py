@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
+from rectified_colmap.features import keypoints_in_mask
 from rectified_colmap.eval.homography import HomographyPair, apply_homography, points_in_region
 from rectified_colmap.rectify import Rectification, image_to_rectified_homography
 from rectified_colmap_research.evaluation.plane_pairs import homography_jacobian
@@ -67,16 +68,12 @@ def overlap_points(pair: HomographyPair, step: float = 8.0) -> np.ndarray:
 
 def in_mask(mask: np.ndarray | None, xy: np.ndarray) -> np.ndarray:
     """(N,) bool: which COLMAP pixel positions (N, 2) fall on a True pixel of ``mask``
-    (None: all)."""
+    (None: all; non-finite positions: none)."""
     if mask is None:
         return np.ones(len(xy), bool)
     h, w = mask.shape
-    out = np.zeros(len(xy), bool)
-    ok = np.isfinite(xy).all(1)
-    c = np.floor(np.where(ok[:, None], xy, -1)).astype(np.int64)
-    ok &= (c[:, 0] >= 0) & (c[:, 1] >= 0) & (c[:, 0] < w) & (c[:, 1] < h)
-    out[ok] = mask[c[ok, 1], c[ok, 0]]
-    return out
+    finite = np.isfinite(xy).all(1)
+    return finite & keypoints_in_mask(np.where(finite[:, None], xy, -1.0), mask, (w, h))
 
 
 def best_transition_tilt(
