@@ -46,7 +46,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rectified_colmap import camera as cam_utils
 from rectified_colmap.budget import (
     keypoint_cap,
     largest_scales,
@@ -67,6 +66,7 @@ from rectified_colmap.io.hloc_h5 import rootsift_unit
 from rectified_colmap.pipeline import image_planes, with_vanishing_points
 from rectified_colmap.sift import Sift, plain_sift, rectified_features
 from rectified_colmap.views import plan_views
+from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera
 from rectified_colmap_research.evaluation.oracle import plane_depth
 from rectified_colmap_research.evaluation.view_meeting import met_fraction, view_set
 
@@ -75,11 +75,6 @@ STAGES = ("plain", "views_uncapped", "views", "budget", "dedup", "final")
 MET_FRACTION = 0.1
 """A pair's view sets meet when they meet on at least this fraction of its overlap."""
 UNCAPPED = {"max_patch_side": 8192, "max_view_pixels_factor": 1e6}
-
-
-def true_camera(size: tuple[int, int], focal: float):
-    w, h = size
-    return cam_utils.make_camera("PINHOLE", [focal, focal, w / 2, h / 2], w, h)
 
 
 def image_views(gray, rgb, camera, normal, region, conf: ExtractConf, network, uncapped, rng):
@@ -165,8 +160,8 @@ def pair_camera(q, k: int, args):
     guess (1.2 x the longer side) with --cameras guessed; principal point at the centre."""
     size = q.size0 if k == 0 else q.size1
     if args.cameras == "guessed":
-        return true_camera(size, 1.2 * max(size))
-    return true_camera(size, args.focal_factor * float(q.info[f"focal{k}"]))
+        return pinhole_camera(1.2 * max(size), size)
+    return pinhole_camera(args.focal_factor * float(q.info[f"focal{k}"]), size)
 
 
 def main(argv=None) -> int:

@@ -75,6 +75,7 @@ from rectified_colmap_research.evaluation.homography_report import (
     split_group_markdown,
     split_summary_markdown,
 )
+from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera
 from rectified_colmap_research.evaluation.oracle import plane_depth
 from rectified_colmap_research.evaluation.methods import (
     add_variant_argument,
@@ -88,12 +89,8 @@ DEFAULT_METHODS = ("sift", "rectsift", "oracle", "asift")
 ORACLES = ("oracle", "oracle_true")
 
 
-def pinhole(width: int, height: int, f: float):
-    return cam_utils.make_camera("PINHOLE", [f, f, width / 2, height / 2], width, height)
-
-
 def guessed_camera(width: int, height: int, focal_factor: float):
-    return pinhole(width, height, focal_factor * max(width, height))
+    return pinhole_camera(focal_factor * max(width, height), (width, height))
 
 
 def true_cameras(pairs, factor: float) -> dict:
@@ -105,7 +102,7 @@ def true_cameras(pairs, factor: float) -> dict:
             f = p.info.get(f"focal{k}")
             if f is None:
                 raise ValueError(f"pair {p.name}: no focal{k} in the pair file (--cameras true)")
-            out[name] = pinhole(*size, factor * float(f))
+            out[name] = pinhole_camera(factor * float(f), size)
     return out
 
 

@@ -42,6 +42,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rectified_colmap.camera import make_camera
 from rectified_colmap.conventions import pixel_centers, to_opencv_points
 from rectified_colmap_research.evaluation.plane_pairs import homography_jacobian, transition_tilt
 
@@ -77,6 +78,12 @@ def roll_matrix(deg: float) -> np.ndarray:
 def intrinsics(focal: float, size: tuple[int, int]) -> np.ndarray:
     """(3, 3) pinhole K (COLMAP convention), principal point at the centre of (W, H)."""
     return np.array([[focal, 0, size[0] / 2], [0, focal, size[1] / 2], [0, 0, 1.0]])
+
+
+def pinhole_camera(focal: float, size: tuple[int, int]):
+    """The pycolmap PINHOLE camera of ``intrinsics``: how the views are rendered, and what
+    the evaluation gives a method with a known (or guessed) focal length."""
+    return make_camera("PINHOLE", [focal, focal, size[0] / 2, size[1] / 2], *size)
 
 
 def plane_homography(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
