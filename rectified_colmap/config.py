@@ -36,6 +36,13 @@ class PlaneConf:
     min_normals: int = 100  # fewer valid normals: no dominant directions (plain SIFT)
 
 
+VIEW_RESOLUTIONS = ("finest", "area", "coarsest")
+"""``RectifyConf.view_resolution``: the image->view Jacobian's median smaller singular value
+is 1 (finest: nothing shrinks, the foreshortened direction is stretched), the median product
+of both is 1 (area: the view has the patch's pixels), or the median larger one is 1
+(coarsest: nothing grows, the other direction is compressed, as ASIFT's tilt simulation)."""
+
+
 @dataclass
 class RectifyConf:
     """Plane patches -> homographies and rectified views (rectified_colmap.rectify)."""
@@ -43,12 +50,20 @@ class RectifyConf:
     max_viewing_angle_deg: float = 86.0  # crop pixels seen more obliquely than this
     min_rectify_angle_deg: float = 30.0  # patches seen more frontally: left to plain SIFT
     min_texture: float = 5.0  # work cells with a lower Sobel magnitude get no view pixels
+    view_resolution: str = "finest"  # finest | area | coarsest (rectify.VIEW_RESOLUTIONS)
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
     max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
+
+    def __post_init__(self):
+        if self.view_resolution not in VIEW_RESOLUTIONS:
+            raise ValueError(
+                f"rectify.view_resolution must be one of {', '.join(VIEW_RESOLUTIONS)}, "
+                f"got {self.view_resolution!r}"
+            )
 
 
 @dataclass

@@ -5,10 +5,11 @@ Which patches of an image get views, and within what budget, is rectified_colmap
 A patch with normal n (facing the camera) is seen by a virtual camera with the same centre,
 rotated by the smallest rotation R that takes the viewing direction -n onto +z. A ray X of
 the original camera is X_v = R X in the virtual one; the virtual camera is a pinhole with
-intrinsics K_v (COLMAP convention) chosen so that the patch fits in (w, h) pixels, nothing
-shrinks (median smaller singular value of the image->rectified Jacobian = 1) and the size
-is capped. For an undistorted camera with intrinsics K the image->rectified map is the
-homography H = K_v R K^-1; for other models warps go through the camera's own distortion.
+intrinsics K_v (COLMAP convention) chosen so that the patch fits in (w, h) pixels, at the
+resolution of ``RectifyConf.view_resolution`` (default: nothing shrinks, the median smaller
+singular value of the image->rectified Jacobian = 1) and the size is capped. For an
+undistorted camera with intrinsics K the image->rectified map is the homography H = K_v R
+K^-1; for other models warps go through the camera's own distortion.
 
 Shapes: patch masks (h, w) bool on the work grid covering the image; rectified images and
 masks (height, width); pixel coordinates (N, 2) in COLMAP convention in both the original
@@ -25,7 +26,7 @@ import numpy as np
 import pycolmap
 
 from . import camera as cam_utils
-from .config import RectifyConf
+from .config import VIEW_RESOLUTIONS, RectifyConf
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
 from .geometry import singular_values_2x2, smallest_rotation
 from .planes import Patch
@@ -182,7 +183,7 @@ class PatchView:
     mask: np.ndarray
     cos_max: float
     f: float
-    """Virtual focal length at which nothing shrinks (before the caps)."""
+    """Virtual focal length of the conf's view_resolution (before the caps)."""
     lo: np.ndarray
     hi: np.ndarray
     """Extent of the patch in virtual normalised coordinates, half a cell of margin."""
@@ -200,8 +201,9 @@ def plan_rectification(
     length after the caps (the pipeline's budget on the total rectified area).
 
     The virtual focal f makes the median smaller singular value of the image->rectified
-    Jacobian over the patch 1 (nothing shrinks); the size is then capped by
-    conf.max_patch_side, scaling f down.
+    Jacobian over the patch 1 (nothing shrinks; or the product of both, or the larger one:
+    conf.view_resolution, view_focal); the size is then capped by conf.max_patch_side,
+    scaling f down.
     """
     view = patch_view(camera, patch, conf)
     if view is None:
@@ -241,8 +243,8 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
     _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
     J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
-    smin = singular_values_2x2(J)[:, 1]
-    if not np.isfinite(smin).any() or np.nanmedian(smin) <= 0:
+    f = view_focal(singular_values_2x2(J), conf.view_resolution)
+    if f is None:
         return None
     # Margin of half a work cell around the cell centres, in virtual normalised units.
     half = np.nanmax(0.5 * np.abs(J) @ np.array([sx, sy]), axis=0)
@@ -251,10 +253,29 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
         R=R,
         mask=mask,
         cos_max=cos_max,
-        f=1.0 / np.nanmedian(smin),
+        f=f,
         lo=np.array([u[0].min(), u[1].min()]) - half,
         hi=np.array([u[0].max(), u[1].max()]) + half,
     )
+
+
+def view_focal(s: np.ndarray, rule: str) -> float | None:
+    """Virtual focal length (normalised units -> view pixels) from the (N, 2) singular values
+    (larger, smaller) of d(u)/d(image xy) at f = 1 over a patch's cells and the rule
+    (config.VIEW_RESOLUTIONS: which median of the image->view Jacobian's singular values is
+    1); None when they are degenerate."""
+    if rule == "finest":
+        v = s[:, 1]
+    elif rule == "area":
+        v = np.sqrt(s[:, 0] * s[:, 1])
+    elif rule == "coarsest":
+        v = s[:, 0]
+    else:
+        raise ValueError(f"rectify.view_resolution must be one of {VIEW_RESOLUTIONS}, got {rule!r}")
+    if not np.isfinite(v).any():
+        return None
+    m = float(np.nanmedian(v))
+    return 1.0 / m if m > 0 else None
 
 
 def view_camera(

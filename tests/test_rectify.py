@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from rectified_colmap.rectify import (
     plan_rectification,
     rectified_to_image,
     rectifying_rotation,
+    VIEW_RESOLUTIONS,
     warp_to_rectified,
 )
 
@@ -132,10 +135,14 @@ def test_jacobian_matches_central_differences(name):
     assert rel.max() < 1e-5
 
 
-def test_plan_nothing_shrinks_and_caps():
+@pytest.mark.parametrize("rule", VIEW_RESOLUTIONS)
+def test_plan_view_resolution_and_caps(rule):
+    """finest: the median smaller singular value of d(rectified)/d(image) over the patch is
+    1 (nothing shrinks); area: the median product (the patch keeps its pixels); coarsest:
+    the median larger one (nothing grows, as ASIFT's tilt simulation)."""
     cam = camera("PINHOLE")
     n = unit(NORMALS[1])  # ground-like, strongly foreshortened
-    big = RectifyConf(max_patch_side=10000, border=4)
+    big = RectifyConf(max_patch_side=10000, border=4, view_resolution=rule)
     rect = plan_rectification(cam, full_patch(n), 3, big)
     assert rect.patch_index == 3 and rect.mask.shape == rect.size[::-1]
     # Median smaller singular value of d(rectified)/d(image) over the patch is 1.
@@ -148,12 +155,18 @@ def test_plan_nothing_shrinks_and_caps():
     q = np.c_[xy, np.ones(len(xy))] @ Hm.T
     q = q[:, :2] / q[:, 2:]
     _, J = rectified_to_image(cam, rect, q)
-    smin = 1.0 / np.linalg.svd(J, compute_uv=False)[:, 0]
-    assert np.median(smin) == pytest.approx(1.0, rel=1e-3)
+    sv = 1.0 / np.linalg.svd(J, compute_uv=False)[:, ::-1]  # (larger, smaller) of the inverse
+    assert np.median(sv[:, 0] / sv[:, 1]) > 2  # strongly foreshortened: the rules differ
+    median = {
+        "finest": np.median(sv[:, 1]),
+        "area": np.median(np.sqrt(sv[:, 0] * sv[:, 1])),
+        "coarsest": np.median(sv[:, 0]),
+    }[rule]
+    assert median == pytest.approx(1.0, rel=1e-3)
     # Every patch cell is inside the rectified image, with the border margin.
     assert q.min() >= 4 - 1e-6 and (q.max(0) <= np.array(rect.size) - 4 + 1e-6).all()
     # The side cap, and a scale (the image's pixel budget) on top of it.
-    capped = plan_rectification(cam, full_patch(n), 0, RectifyConf(max_patch_side=100))
+    capped = plan_rectification(cam, full_patch(n), 0, replace(big, max_patch_side=100))
     assert max(capped.size) <= 100 and capped.K[0, 0] < rect.K[0, 0]
     half = plan_rectification(cam, full_patch(n), 0, big, scale=0.5)
     assert half.K[0, 0] == pytest.approx(0.5 * rect.K[0, 0])
