@@ -7,12 +7,13 @@ frames pay the same share as large ones.
 
 Plain SIFT keeps COLMAP's budget (``sift.max_num_features``: detected points, a point with
 two orientations gives two keypoints) on the whole image, exactly as COLMAP. The rectified
-features come on top: at most ``dedup.extra_frac`` x plain SIFT's keypoint count
-(:func:`keypoint_cap`); the views' SIFT budgets share ``sift.patch_budget_factor`` x that
-room by covered area (:func:`view_budgets`, :func:`split_budget`), so they cost what they may
-add; what survives the near-duplicate and crowding tests is cut to the room, smallest major
-scales first (:func:`largest_scales`, as COLMAP's own budget keeps the largest scales).
-"""
+features come on top: at most ``dedup.extra_frac`` x plain SIFT's budget, or x its keypoint
+count where that is larger (:func:`rectified_room`: an image where plain SIFT finds few
+features gets the room of a full one); the views' SIFT budgets share
+``sift.patch_budget_factor`` x that room by covered area (:func:`view_budgets`,
+:func:`split_budget`), so they cost what they may add; what survives the near-duplicate and
+crowding tests is cut to the room, smallest major scales first (:func:`largest_scales`, as
+COLMAP's own budget keeps the largest scales)."""
 
 from __future__ import annotations
 
@@ -36,17 +37,20 @@ def view_pixel_budget(shape: tuple[int, int], conf: ExtractConf) -> float:
     return conf.rectify.max_view_pixels_factor * min(w * h, usable)
 
 
-def keypoint_cap(plain_count: int, extra_frac: float) -> int:
-    """How many keypoints an image may output where plain SIFT keeps ``plain_count``:
-    ``plain_count`` x (1 + ``extra_frac``)."""
-    return round(plain_count * (1 + extra_frac))
+def rectified_room(plain_count: int, conf: ExtractConf) -> int:
+    """How many rectified keypoints may come on top of plain SIFT's ``plain_count``:
+    ``dedup.extra_frac`` x the larger of plain SIFT's budget ``sift.max_num_features`` and
+    its count (with two orientations a detected point gives two keypoints). The budget,
+    not only the count: an image where plain SIFT finds few features (a small photo, an
+    extreme view) gets the room of a full one, and no image more than a full one's."""
+    return round(max(plain_count, conf.sift.max_num_features) * conf.dedup.extra_frac)
 
 
 def view_budgets(plain_count: int, areas: np.ndarray, conf: ExtractConf) -> np.ndarray:
     """(n,) SIFT budgets of n rectified views covering ``areas`` (n,) work cells each, on an
     image where plain SIFT keeps ``plain_count`` keypoints: ``conf.sift.patch_budget_factor``
-    x the room above plain SIFT (``keypoint_cap``), shared by area (``split_budget``)."""
-    room = keypoint_cap(plain_count, conf.dedup.extra_frac) - plain_count
+    x the room above plain SIFT (``rectified_room``), shared by area (``split_budget``)."""
+    room = rectified_room(plain_count, conf)
     return split_budget(round(conf.sift.patch_budget_factor * room), areas)
 
 

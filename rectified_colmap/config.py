@@ -74,7 +74,7 @@ class DedupConf:
     min_cosine: float = 0.9  # ...with descriptors more similar than this...
     max_scale_ratio: float = 1.5  # ...and scales within this factor
     max_plain_cosine: float = 0.9  # drop rectified features this similar to a plain one (1: off)
-    extra_frac: float = 0.5  # rectified features on top: at most this x plain SIFT's count
+    extra_frac: float = 0.5  # rectified features on top: at most this x plain SIFT's budget
 
 
 @dataclass

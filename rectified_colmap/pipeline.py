@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .budget import keypoint_cap, largest_scales, view_budgets, view_pixel_budget
+from .budget import largest_scales, rectified_room, view_budgets, view_pixel_budget
 from .config import ExtractConf
 from .dedup import rectified_to_keep
 from .depth import DepthMap
@@ -214,6 +214,6 @@ def features_on_top(
     with timed(t, "dedup"):
         rectified = Features.concatenate(parts)
         keep = rectified_to_keep(rectified, plain, conf.dedup)
-        room = keypoint_cap(len(plain), conf.dedup.extra_frac) - len(plain)
+        room = rectified_room(len(plain), conf)
         keep = largest_scales(rectified, keep, max(0, room))
         return Features.concatenate([plain, rectified.subset(keep)])

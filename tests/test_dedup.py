@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.budget import keypoint_cap, largest_scales, view_pixel_budget
+from rectified_colmap.budget import largest_scales, rectified_room, view_pixel_budget
 from rectified_colmap.config import DedupConf, ExtractConf
 from rectified_colmap.dedup import (
     duplicate_fraction,
@@ -130,10 +130,17 @@ def test_rectified_to_keep_drops_twins_and_features_that_crowd_a_plain_one():
 
 
 def test_the_cut_keeps_the_largest_major_scales_within_the_cap():
-    """keypoint_cap is plain SIFT's count x (1 + extra_frac); the rectified features beyond
-    the room are cut smallest major scale first (the larger singular value of A, which a
-    steep view does not shrink), in index order."""
-    assert [keypoint_cap(200, e) for e in (0.0, 0.15, 0.5)] == [200, 230, 300]
+    """The room above plain SIFT is extra_frac x the larger of its budget and its keypoint
+    count (an image with few plain features gets a full image's room); the rectified features
+    beyond the room are cut smallest major scale first (the larger singular value of A,
+    which a steep view does not shrink), in index order."""
+    conf = ExtractConf()
+    conf.sift.max_num_features = 1000
+    got = []
+    for e, n in ((0.0, 200), (0.15, 200), (0.5, 200), (0.5, 999), (0.5, 3000)):
+        conf.dedup.extra_frac = e
+        got.append(rectified_room(n, conf))
+    assert got == [0, 150, 500, 500, 1500]
     rng = np.random.default_rng(7)
     m = 40
     stretch = np.diag([1.0, 0.3])  # major scale = scale, |det| = 0.3 scale^2
@@ -182,7 +189,7 @@ def test_pipeline_default_is_plain_sift_plus_uncrowded_features():
     kept, rect = out.subset(out.patch < 0), out.subset(out.patch >= 0)
     assert len(duplicate_pairs(out, DedupConf())) == 0  # no twin across sources
     assert duplicate_fraction(out) <= duplicate_fraction(plain) + 0.01
-    assert len(out) <= keypoint_cap(len(plain), conf.dedup.extra_frac)
+    assert len(out) <= len(plain) + rectified_room(len(plain), conf)
 
     def key(f):
         return {k.tobytes() + d.tobytes() for k, d in zip(f.keypoints, f.descriptors)}

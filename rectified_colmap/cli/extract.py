@@ -153,8 +153,9 @@ def _add_method_options(g) -> None:
         default=None,
         help="plain SIFT's budget per image, as COLMAP's (it counts detected points; a "
         "point with two orientations gives two keypoints, as in COLMAP); the rectified "
-        "features come on top, at most dedup.extra_frac of plain SIFT's keypoints "
-        f"({100 * ExtractConf().dedup.extra_frac:.0f} %% in rectsift). Default: the "
+        "features come on top, at most dedup.extra_frac of this budget (of plain SIFT's "
+        f"keypoints where they are more; {100 * ExtractConf().dedup.extra_frac:.0f} %% in "
+        "rectsift). Default: the "
         f"configuration's, {ExtractConf.from_dict(confs['rectsift']).sift.max_num_features} "
         "in rectsift",
     )

@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 
 from rectified_colmap.budget import (
-    keypoint_cap,
+    rectified_room,
     largest_scales,
     view_budgets,
     view_pixel_budget,
@@ -119,7 +119,7 @@ def stage_features(gray, camera, conf: ExtractConf, views, uncapped, unlimited: 
     out["budget"] = Features.concatenate([plain, rect])
     keep = rectified_to_keep(rect, plain, conf.dedup)
     out["dedup"] = Features.concatenate([plain, rect.subset(keep)])
-    room = keypoint_cap(len(plain), conf.dedup.extra_frac) - len(plain)
+    room = rectified_room(len(plain), conf)
     out["final"] = Features.concatenate([plain, rect.subset(largest_scales(rect, keep, room))])
     return out
 
