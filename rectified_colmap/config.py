@@ -50,7 +50,7 @@ class RectifyConf:
     max_viewing_angle_deg: float = 86.0  # crop pixels seen more obliquely than this
     min_rectify_angle_deg: float = 30.0  # patches seen more frontally: left to plain SIFT
     min_texture: float = 5.0  # work cells with a lower Sobel magnitude get no view pixels
-    view_resolution: str = "finest"  # finest | area | coarsest (rectify.VIEW_RESOLUTIONS)
+    view_resolution: str = "finest"  # finest | area | coarsest (VIEW_RESOLUTIONS above)
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
     max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
     border: int = 6  # features closer than this to a view's border are dropped (pixels)

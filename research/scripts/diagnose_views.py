@@ -47,8 +47,8 @@ import cv2
 import numpy as np
 
 from rectified_colmap.budget import (
-    rectified_room,
     largest_scales,
+    rectified_room,
     view_budgets,
     view_pixel_budget,
 )
