@@ -43,6 +43,14 @@ of both is 1 (area: the view has the patch's pixels), or the median larger one i
 (coarsest: nothing grows, the other direction is compressed, as ASIFT's tilt simulation)."""
 
 
+def check_view_resolution(rule: str) -> None:
+    """ValueError (one line) unless ``rule`` is one of VIEW_RESOLUTIONS."""
+    if rule not in VIEW_RESOLUTIONS:
+        raise ValueError(
+            f"rectify.view_resolution must be one of {', '.join(VIEW_RESOLUTIONS)}, got {rule!r}"
+        )
+
+
 @dataclass
 class RectifyConf:
     """Plane patches -> homographies and rectified views (rectified_colmap.rectify)."""
@@ -59,11 +67,7 @@ class RectifyConf:
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
 
     def __post_init__(self):
-        if self.view_resolution not in VIEW_RESOLUTIONS:
-            raise ValueError(
-                f"rectify.view_resolution must be one of {', '.join(VIEW_RESOLUTIONS)}, "
-                f"got {self.view_resolution!r}"
-            )
+        check_view_resolution(self.view_resolution)
 
 
 @dataclass

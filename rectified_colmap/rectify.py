@@ -26,7 +26,7 @@ import numpy as np
 import pycolmap
 
 from . import camera as cam_utils
-from .config import VIEW_RESOLUTIONS, RectifyConf
+from .config import RectifyConf, check_view_resolution
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
 from .geometry import singular_values_2x2, smallest_rotation
 from .planes import Patch
@@ -264,14 +264,13 @@ def view_focal(s: np.ndarray, rule: str) -> float | None:
     (larger, smaller) of d(u)/d(image xy) at f = 1 over a patch's cells and the rule
     (config.VIEW_RESOLUTIONS: which median of the image->view Jacobian's singular values is
     1); None when they are degenerate."""
+    check_view_resolution(rule)  # the conf's field may have been set after construction
     if rule == "finest":
         v = s[:, 1]
     elif rule == "area":
         v = np.sqrt(s[:, 0] * s[:, 1])
-    elif rule == "coarsest":
+    else:  # coarsest
         v = s[:, 0]
-    else:
-        raise ValueError(f"rectify.view_resolution must be one of {VIEW_RESOLUTIONS}, got {rule!r}")
     if not np.isfinite(v).any():
         return None
     m = float(np.nanmedian(v))

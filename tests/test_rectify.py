@@ -7,7 +7,7 @@ import pytest
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.camera import make_camera, rays_to_image
-from rectified_colmap.config import RectifyConf
+from rectified_colmap.config import VIEW_RESOLUTIONS, RectifyConf
 from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
 from rectified_colmap.rectify import (
     Rectification,
@@ -15,7 +15,6 @@ from rectified_colmap.rectify import (
     plan_rectification,
     rectified_to_image,
     rectifying_rotation,
-    VIEW_RESOLUTIONS,
     warp_to_rectified,
 )
 
