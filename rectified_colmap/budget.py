@@ -11,9 +11,15 @@ features come on top: at most ``dedup.extra_frac`` x plain SIFT's budget, or x i
 count where that is larger (:func:`rectified_room`: an image where plain SIFT finds few
 features gets the room of a full one); the views' SIFT budgets share
 ``sift.patch_budget_factor`` x that room by covered area (:func:`view_budgets`,
-:func:`split_budget`), so they cost what they may add; what survives the near-duplicate and
-crowding tests is cut to the room, smallest major scales first (:func:`largest_scales`, as
-COLMAP's own budget keeps the largest scales)."""
+:func:`split_budget`), so they cost what they may add; what survives the near-duplicate
+test is cut to the room (:func:`cut_to_room`), largest major scales first
+(:func:`largest_scales`, as COLMAP's own budget keeps the largest scales): first the
+features unlike any plain one, then the look-alikes of plain features
+(rectified_colmap.dedup), but these only in the part of plain SIFT's budget its keypoints
+left unused (:func:`lookalike_room`). A look-alike can crowd a plain feature's match out of
+the ratio test; where plain SIFT fills its budget (a textured photo, whose moderate pairs
+plain SIFT matches) none is kept, where it leaves budget unused (a small or sparse image, a
+strongly foreshortened view) they may fill what plain SIFT did not use."""
 
 from __future__ import annotations
 
@@ -44,6 +50,32 @@ def rectified_room(plain_count: int, conf: ExtractConf) -> int:
     not only the count: an image where plain SIFT finds few features (a small photo, an
     extreme view) gets the room of a full one, and no image more than a full one's."""
     return round(max(plain_count, conf.sift.max_num_features) * conf.dedup.extra_frac)
+
+
+def lookalike_room(plain_count: int, conf: ExtractConf) -> int:
+    """How many look-alikes of plain features may come on top of plain SIFT's
+    ``plain_count`` keypoints: the part of plain SIFT's budget ``sift.max_num_features`` its
+    keypoints left unused (0 where plain SIFT fills it, or with
+    ``dedup.lookalikes_in_unused_budget`` False)."""
+    if not conf.dedup.lookalikes_in_unused_budget:
+        return 0
+    return max(0, conf.sift.max_num_features - plain_count)
+
+
+def cut_to_room(
+    feats: Features, index: np.ndarray, lookalike: np.ndarray, plain_count: int, conf: ExtractConf
+) -> np.ndarray:
+    """The rectified features kept on top of plain SIFT's ``plain_count`` keypoints, sorted:
+    of ``feats[index]`` (the candidates, dedup.rectified_candidates), first those that are no
+    look-alike (``lookalike`` (K,) bool: False), largest major scales first, up to the room
+    (``rectified_room``); then look-alikes, largest major scales first, up to the room left
+    and at most ``lookalike_room``."""
+    room = max(0, rectified_room(plain_count, conf))
+    index, lookalike = np.asarray(index), np.asarray(lookalike, bool)
+    first = largest_scales(feats, index[~lookalike], room)
+    left = min(room - len(first), lookalike_room(plain_count, conf))
+    second = largest_scales(feats, index[lookalike], max(0, left))
+    return np.sort(np.concatenate([first, second]))
 
 
 def view_budgets(plain_count: int, areas: np.ndarray, conf: ExtractConf) -> np.ndarray:

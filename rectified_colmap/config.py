@@ -77,7 +77,9 @@ class DedupConf:
     radius_px: float = 1.0  # twins lie closer than this (original-image pixels)...
     min_cosine: float = 0.9  # ...with descriptors more similar than this...
     max_scale_ratio: float = 1.5  # ...and scales within this factor
-    max_plain_cosine: float = 0.9  # drop rectified features this similar to a plain one (1: off)
+    max_plain_cosine: float = 0.9  # rectified features this similar to a plain one: look-alikes
+    lookalikes_in_unused_budget: bool = True  # look-alikes only in plain SIFT's unused budget
+    # (budget.lookalike_room); False: never kept (1 above: no look-alikes)
     extra_frac: float = 0.5  # rectified features on top: at most this x plain SIFT's budget
 
 

@@ -1,4 +1,4 @@
-"""Near-duplicate keypoints: one feature per location and scale, none that crowds plain SIFT.
+"""Near-duplicate keypoints: one feature per location and scale; look-alikes of plain SIFT's.
 
 Plain SIFT over the whole image plus SIFT in a rectified patch over the same pixels finds
 many features twice: a keypoint of the patch, mapped back, lands within a pixel of a plain
@@ -6,9 +6,11 @@ keypoint with an almost identical descriptor. Lowe's ratio test then rejects bot
 twin is the second-nearest neighbour), so every twin costs a match. This module finds such
 pairs and says which rectified features stay: every plain feature does (the extractor's
 output holds plain SIFT's exactly), a rectified twin of a plain feature or of a more
-strongly rectified one does not, nor does a rectified feature whose descriptor would crowd
-a plain one out of the ratio test (``max_plain_cosine``). How many of the rest are kept is
-the budget's (rectified_colmap.budget).
+strongly rectified one does not. Of the rest it flags the **look-alikes**: rectified
+features whose descriptor is within ``max_plain_cosine`` of a plain one anywhere in the
+image, which can crowd that plain feature's match out of the ratio test. How many of each
+kind are kept is the budget's (rectified_colmap.budget.cut_to_room: look-alikes only in the
+part of plain SIFT's budget that plain SIFT left unused).
 
 Conventions: keypoints (N, 2) in COLMAP pixels of the ORIGINAL image (distances do not
 depend on the convention: both sides are in the same one); affine frames (N, 2, 2) as
@@ -159,17 +161,21 @@ def duplicate_fraction(feats: Features, radius: float = 1.0, min_cosine: float =
     return float(twin.mean())
 
 
-def rectified_to_keep(
+def rectified_candidates(
     rectified: Features, plain: Features, conf: DedupConf = DedupConf()
-) -> np.ndarray:
-    """Indices (sorted) of the ``rectified`` features (all views, mapped back) that may come
-    on top of ``plain`` (plain SIFT of the whole image, all kept): neither a near-duplicate
-    (``near_duplicate_mask``) nor within ``conf.max_plain_cosine`` of a plain feature's
-    descriptor anywhere in the image (it would crowd that one out of the ratio test; 1:
-    no such test)."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the ``rectified`` features (all views, mapped back) may come on top of
+    ``plain`` (plain SIFT of the whole image, all kept), and which of those are look-alikes.
+
+    Returns (index, lookalike): index (K,) sorted indices of the rectified features that are
+    no near-duplicate (``near_duplicate_mask``); lookalike (K,) bool, True where the
+    feature's descriptor is within ``conf.max_plain_cosine`` of a plain feature's anywhere
+    in the image (it can crowd that feature's match out of the ratio test; all False at
+    ``max_plain_cosine`` 1)."""
     both = Features.concatenate([rectified, plain])
-    keep = np.flatnonzero(near_duplicate_mask(both, conf)[: len(rectified)])
+    index = np.flatnonzero(near_duplicate_mask(both, conf)[: len(rectified)])
+    lookalike = np.zeros(len(index), bool)
     if conf.max_plain_cosine < 1.0:
-        cos = max_cosine(rectified.descriptors[keep], plain.descriptors)
-        keep = keep[cos <= conf.max_plain_cosine]
-    return keep
+        cos = max_cosine(rectified.descriptors[index], plain.descriptors)
+        lookalike = cos > conf.max_plain_cosine
+    return index, lookalike

@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .budget import largest_scales, rectified_room, view_budgets, view_pixel_budget
+from .budget import cut_to_room, view_budgets, view_pixel_budget
 from .config import ExtractConf
-from .dedup import rectified_to_keep
+from .dedup import rectified_candidates
 from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import Features
@@ -201,8 +201,9 @@ def features_on_top(
     t: dict[str, float] | None = None,
 ) -> Features:
     """``plain`` (plain SIFT of the whole image, all kept) plus the rectified features of the
-    views that neither twin nor crowd a plain one (rectified_colmap.dedup), at most the
-    budget's room above plain SIFT (rectified_colmap.budget), largest major scales first."""
+    views that twin no plain one (rectified_colmap.dedup), at most the budget's room above
+    plain SIFT, look-alikes of plain features only in plain SIFT's unused budget
+    (rectified_colmap.budget.cut_to_room)."""
     t = {} if t is None else t
     areas = views.masks.reshape(len(views.masks), -1).sum(1)
     budgets = view_budgets(len(plain), areas, conf)
@@ -213,7 +214,6 @@ def features_on_top(
             parts.append(rectified_features(gray, camera, rect, *args))
     with timed(t, "dedup"):
         rectified = Features.concatenate(parts)
-        keep = rectified_to_keep(rectified, plain, conf.dedup)
-        room = rectified_room(len(plain), conf)
-        keep = largest_scales(rectified, keep, max(0, room))
+        index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
+        keep = cut_to_room(rectified, index, lookalike, len(plain), conf)
         return Features.concatenate([plain, rectified.subset(keep)])

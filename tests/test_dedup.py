@@ -5,7 +5,13 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.budget import largest_scales, rectified_room, view_pixel_budget
+from rectified_colmap.budget import (
+    cut_to_room,
+    largest_scales,
+    lookalike_room,
+    rectified_room,
+    view_pixel_budget,
+)
 from rectified_colmap.config import DedupConf, ExtractConf
 from rectified_colmap.dedup import (
     duplicate_fraction,
@@ -14,7 +20,7 @@ from rectified_colmap.dedup import (
     max_cosine,
     near_duplicate_mask,
     neighbour_pairs,
-    rectified_to_keep,
+    rectified_candidates,
 )
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.features import Features, similarity_frames
@@ -101,10 +107,11 @@ def test_plain_twins_always_win_and_the_more_oblique_rectified_twin_wins():
         assert both.patch[near_duplicate_mask(both)].tolist() == [1]
 
 
-def test_rectified_to_keep_drops_twins_and_features_that_crowd_a_plain_one():
-    """A rectified feature stays unless it twins a plain one or its descriptor is within
-    max_plain_cosine of a plain feature's ANYWHERE in the image (not a twin: 200 px away:
-    it would crowd that feature out of the ratio test)."""
+def test_rectified_candidates_drop_twins_and_flag_lookalikes_of_plain_ones():
+    """A rectified feature is a candidate unless it twins a plain one; a candidate is a
+    look-alike where its descriptor is within max_plain_cosine of a plain feature's
+    ANYWHERE in the image (not a twin: 200 px away: it can crowd that feature out of the
+    ratio test)."""
     rng = np.random.default_rng(5)
     n = 100
     plain = make_features(
@@ -123,10 +130,55 @@ def test_rectified_to_keep_drops_twins_and_features_that_crowd_a_plain_one():
     rect = make_features(xy, plain.scales[:12], np.zeros(12), desc, np.zeros(12))
     cos = max_cosine(rect.descriptors, plain.descriptors)
     assert (cos[:5] > 0.99).all() and (cos[5:10] < 0.9).all()
-    np.testing.assert_array_equal(rectified_to_keep(rect, plain), np.arange(5, 10))
-    # max_plain_cosine 1: no crowding test, only the twins go
-    loose = rectified_to_keep(rect, plain, DedupConf(max_plain_cosine=1.0))
-    np.testing.assert_array_equal(loose, np.arange(10))
+    index, lookalike = rectified_candidates(rect, plain)
+    np.testing.assert_array_equal(index, np.arange(10))
+    np.testing.assert_array_equal(lookalike, np.arange(10) < 5)
+    # max_plain_cosine 1: no look-alikes, the twins still go
+    index, lookalike = rectified_candidates(rect, plain, DedupConf(max_plain_cosine=1.0))
+    np.testing.assert_array_equal(index, np.arange(10))
+    assert not lookalike.any()
+
+
+def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
+    """cut_to_room: the features unlike any plain one first (largest major scales) up to
+    the room; then look-alikes (largest major scales) up to the room left, and at most the
+    part of plain SIFT's budget its keypoints left unused: none where plain SIFT fills it
+    (the cut of before, exactly), none with lookalikes_in_unused_budget False."""
+    conf = ExtractConf()
+    conf.sift.max_num_features = 100  # room = 0.5 x max(count, 100)
+    rng = np.random.default_rng(3)
+    m = 120
+    feats = make_features(
+        rng.uniform(0, 500, (m, 2)),
+        rng.permutation(m) + 1.0,
+        np.zeros(m),
+        random_desc(rng, m),
+        np.zeros(m),
+    )
+    index = np.arange(0, m, 1)
+    lookalike = np.arange(m) % 3 != 0  # 80 look-alikes, 40 others
+    others, looks = index[~lookalike], index[lookalike]
+
+    def top(ix, k):  # the k largest scales of ix, sorted
+        return np.sort(ix[np.argsort(-feats.scales[ix], kind="stable")[:k]])
+
+    # room 50 (75 at 150 keypoints): the 40 others, then up to 10 (35) look-alikes
+    for count, expect_looks in ((100, 0), (150, 0), (95, 5), (70, 10), (0, 10)):
+        assert lookalike_room(count, conf) == max(0, 100 - count)
+        got = cut_to_room(feats, index, lookalike, count, conf)
+        expect = np.sort(np.concatenate([others, top(looks, expect_looks)]))
+        np.testing.assert_array_equal(got, expect)
+        if expect_looks == 0:  # plain SIFT fills its budget: no look-alike at all
+            room = rectified_room(count, conf)
+            np.testing.assert_array_equal(got, largest_scales(feats, others, room))
+    conf.dedup.extra_frac = 0.3  # room 30 < the 40 others: their 30 largest, no look-alike
+    np.testing.assert_array_equal(cut_to_room(feats, index, lookalike, 0, conf), top(others, 30))
+    conf.dedup.extra_frac = 1.2  # room 120: 40 others, then 80 look-alikes (unused 100)
+    np.testing.assert_array_equal(cut_to_room(feats, index, lookalike, 0, conf), index)
+    assert len(cut_to_room(feats, index, lookalike, 30, conf)) == 40 + 70
+    conf.dedup.lookalikes_in_unused_budget = False  # the switch: none
+    assert lookalike_room(0, conf) == 0
+    np.testing.assert_array_equal(cut_to_room(feats, index, lookalike, 0, conf), others)
 
 
 def test_the_cut_keeps_the_largest_major_scales_within_the_cap():
@@ -152,7 +204,7 @@ def test_the_cut_keeps_the_largest_major_scales_within_the_cap():
         [1] * m,
         stretch,
     )
-    index = np.arange(0, m, 2)  # a subset, as rectified_to_keep gives
+    index = np.arange(0, m, 2)  # a subset, as rectified_candidates gives
     for room in (0, 7, 20, 50):
         got = largest_scales(feats, index, room)
         expect = np.sort(index[np.argsort(-feats.scales[index] / 0.65, kind="stable")[:room]])
@@ -174,35 +226,43 @@ SIZE = (480, 360)
 CAMERA = cam_utils.make_camera("PINHOLE", [420, 420, 240, 180], *SIZE)
 
 
-def test_pipeline_default_is_plain_sift_plus_uncrowded_features():
-    """The default dedup (plain features all kept, no rectified feature within cosine 0.9 of
-    a plain one, up to +50 %): the output holds every plain SIFT feature, unchanged, and
-    rectified ones on top, none of which crowds a plain feature."""
+def test_pipeline_default_is_plain_sift_plus_features_that_crowd_none_where_sift_is_full():
+    """The default dedup (plain features all kept, up to +50 %, look-alikes of plain
+    features, cosine above 0.9, only in plain SIFT's unused budget): the output holds every
+    plain SIFT feature, unchanged, and rectified ones on top; where plain SIFT fills its
+    budget none of them looks like a plain feature, where it leaves budget unused at most
+    that many do, and with the switch off none."""
     texture = textured_image(900, 900, 11)
     R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
-    conf = ExtractConf()
-    assert conf.dedup.max_plain_cosine == 0.9
-    conf.sift.max_num_features = 2000
-    plain = detect_sift(img, conf.sift)
-    out = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
-    kept, rect = out.subset(out.patch < 0), out.subset(out.patch >= 0)
-    assert len(duplicate_pairs(out, DedupConf())) == 0  # no twin across sources
-    assert duplicate_fraction(out) <= duplicate_fraction(plain) + 0.01
-    assert len(out) <= len(plain) + rectified_room(len(plain), conf)
+    depth = DepthMap(z, "metric")
 
     def key(f):
         return {k.tobytes() + d.tobytes() for k, d in zip(f.keypoints, f.descriptors)}
 
-    assert key(kept) == key(plain) and len(kept) == len(plain)
-    assert len(rect) > 50
-    assert (max_cosine(rect.descriptors, plain.descriptors) <= 0.9).all()
-    # without the cosine rule more rectified features come, some of them crowding
-    conf.dedup.max_plain_cosine = 1.0
-    more = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
-    more_rect = more.subset(more.patch >= 0)
-    assert len(more_rect) >= len(rect)
-    assert (max_cosine(more_rect.descriptors, plain.descriptors) > 0.9).any()
+    def run(conf):
+        plain = detect_sift(img, conf.sift)
+        out = extract_image(img, CAMERA, depth, conf).features
+        kept, rect = out.subset(out.patch < 0), out.subset(out.patch >= 0)
+        assert key(kept) == key(plain) and len(kept) == len(plain)
+        assert len(duplicate_pairs(out, DedupConf())) == 0  # no twin across sources
+        assert len(out) <= len(plain) + rectified_room(len(plain), conf)
+        looks = int((max_cosine(rect.descriptors, plain.descriptors) > 0.9).sum())
+        return plain, rect, looks
+
+    conf = ExtractConf()
+    assert conf.dedup.max_plain_cosine == 0.9 and conf.dedup.lookalikes_in_unused_budget
+    conf.sift.max_num_features = 400  # plain SIFT fills it: no look-alike
+    plain, rect, looks = run(conf)
+    assert len(plain) >= 400 and len(rect) > 50 and looks == 0
+    conf.sift.max_num_features = 12000  # plain SIFT leaves much of it unused
+    plain, rect, looks = run(conf)
+    assert len(plain) < 12000 and 0 < looks <= lookalike_room(len(plain), conf)
+    both = Features.concatenate([plain, rect])
+    assert duplicate_fraction(both) <= duplicate_fraction(plain) + 0.01
+    conf.dedup.lookalikes_in_unused_budget = False
+    plain, fewer, looks = run(conf)
+    assert looks == 0 and 50 < len(fewer) < len(rect)
 
 
 def test_pipeline_exact_pool_is_plain_sift_where_coarse_first_pays():

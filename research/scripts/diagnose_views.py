@@ -17,8 +17,9 @@ GT-consistent matches):
 - ``views``: the views as the pipeline sizes them (its pixel budget), ``--unlimited``
   features;
 - ``budget``: the views' SIFT budgets (rectified_colmap.budget.view_budgets);
-- ``dedup``: without twins of plain features and crowding ones (dedup.rectified_to_keep);
-- ``final``: cut to the cap above plain SIFT (budget.largest_scales): the pipeline's output.
+- ``dedup``: without twins of plain features (dedup.rectified_candidates);
+- ``final``: cut to the room above plain SIFT, look-alikes of plain features only in its
+  unused budget (budget.cut_to_room): the pipeline's output.
 
 Orientation (``--orientation``): ``true`` gives each image the exact depth of its plane
 where the plane is seen (the pair file's ``normal0``/``normal1`` and regions, as a depth
@@ -46,14 +47,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rectified_colmap.budget import (
-    largest_scales,
-    rectified_room,
-    view_budgets,
-    view_pixel_budget,
-)
+from rectified_colmap.budget import cut_to_room, view_budgets, view_pixel_budget
 from rectified_colmap.config import ExtractConf
-from rectified_colmap.dedup import rectified_to_keep
+from rectified_colmap.dedup import rectified_candidates
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.homography import (
     HomographyConf,
@@ -117,10 +113,10 @@ def stage_features(gray, camera, conf: ExtractConf, views, uncapped, unlimited: 
     areas = views.masks.sum((1, 2))
     rect = detect(views, view_budgets(len(plain), areas, conf))
     out["budget"] = Features.concatenate([plain, rect])
-    keep = rectified_to_keep(rect, plain, conf.dedup)
-    out["dedup"] = Features.concatenate([plain, rect.subset(keep)])
-    room = rectified_room(len(plain), conf)
-    out["final"] = Features.concatenate([plain, rect.subset(largest_scales(rect, keep, room))])
+    index, lookalike = rectified_candidates(rect, plain, conf.dedup)
+    out["dedup"] = Features.concatenate([plain, rect.subset(index)])
+    keep = cut_to_room(rect, index, lookalike, len(plain), conf)
+    out["final"] = Features.concatenate([plain, rect.subset(keep)])
     return out
 
 
