@@ -95,6 +95,8 @@ class SiftConf:
     upright: bool = False
     max_image_size: int = 3200  # ...to here (larger images are downscaled, as COLMAP)
     patch_first_octave: int = -1  # first octave in rectified views
+    patch_upsample_in_warp: bool = True  # a negative first octave: the view is warped at its
+    # resolution (2x at -1) and SIFT starts at octave 0 there (sift.rectified_features)
     patch_octave0_pixels_per_feature: float = 150.0  # from here views start at octave 0; and the
     # pixels the views budget counts: this x max_num_features (budget.view_pixel_budget)
     coarse_first: bool = True  # large images: coarse octaves first (features.detect_sift)

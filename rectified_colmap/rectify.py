@@ -19,7 +19,7 @@ and the rectified image (conversions to OpenCV only through rectified_colmap.con
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -319,6 +319,18 @@ def finish_rectification(
     if not rect.mask.any():
         return None
     return rect
+
+
+def upsampled_rectification(rect: Rectification, factor: int) -> Rectification:
+    """The same view at ``factor`` (integer >= 1) x its resolution: the virtual intrinsics
+    scaled (COLMAP convention: rescaling pixel coordinates is a plain multiplication), the
+    size and the mask (each cell repeated: the cell holding the new pixel's centre)."""
+    if factor == 1:
+        return rect
+    w, h = rect.size
+    mask = np.repeat(np.repeat(rect.mask, factor, axis=0), factor, axis=1)
+    S = np.diag([float(factor), float(factor), 1.0])
+    return replace(rect, K=S @ rect.K, size=(w * factor, h * factor), mask=mask)
 
 
 def warp_to_rectified(

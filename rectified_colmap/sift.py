@@ -27,7 +27,12 @@ import pycolmap
 from .config import SiftConf
 from .features import Features, keypoints_in_mask, similarity_frames
 from .geometry import scaled_size
-from .rectify import Rectification, rectified_to_image, warp_to_rectified
+from .rectify import (
+    Rectification,
+    rectified_to_image,
+    upsampled_rectification,
+    warp_to_rectified,
+)
 
 MIN_SIFT_SIDE = 16
 """Images (and rectified views) with a shorter side get no SIFT features."""
@@ -260,18 +265,38 @@ def rectified_features(
     ``patch_first_octave`` gives the whole image ``gray`` with ``conf``'s budget), mapped
     back to the original image; features closer than ``border`` rectified pixels to the
     border of the warped region are dropped. Their source (``patch``) is
-    ``rect.patch_index``."""
+    ``rect.patch_index``.
+
+    A negative first octave (small images: SIFT's upsampled octave) is taken in the warp
+    (``conf.patch_upsample_in_warp``, unless coarse-first pays in the view): the view is
+    warped from the image at 2**-first_octave x its planned resolution (when that stays
+    within ``conf.max_image_size``, which SIFT would downscale) and SIFT starts at octave 0
+    there. The same scale space and cost as SIFT upsampling the planned view, but
+    where the image's pixel budget shrank the view below the image's own resolution
+    (rectified_colmap.views) the finer octave holds the image's detail, not an
+    interpolation of the shrunk view."""
     first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
-    patch_img = warp_to_rectified(gray, camera, rect)
+    up = 1
+    w, h = rect.size
+    if (
+        first_octave < 0
+        and conf.patch_upsample_in_warp
+        and not coarse_first_pays((h, w), budget, conf)
+        and max(w, h) * 2**-first_octave <= conf.max_image_size
+    ):
+        up = 2**-first_octave
+    patch_img = warp_to_rectified(gray, camera, upsampled_rectification(rect, up))
     feats = detect_sift(
         patch_img,
         conf,
         budget,
-        first_octave,
+        first_octave if up == 1 else 0,
         coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
         slot="patch",
         sift=sift,
     )
+    if up > 1 and len(feats):  # back to the planned view's pixels (a plain multiplication)
+        feats = Features(feats.keypoints / up, feats.shapes / up, feats.descriptors, feats.patch)
     if len(feats) == 0:
         return feats
     valid = rect.mask.astype(np.uint8)
