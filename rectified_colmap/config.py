@@ -65,6 +65,8 @@ class RectifyConf:
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
+    rotate_to_fit: bool = True  # views turned about their axis to the smallest box
+    # (rectify.fitting_roll; False: the smallest rotation, image up stays about up)
 
     def __post_init__(self):
         check_view_resolution(self.view_resolution)

@@ -100,7 +100,10 @@ def extract_image(
     planes = with_vanishing_points(gray, camera, planes, conf, rng, t)
     with timed(t, "homographies"):
         pixels = view_pixel_budget(gray.shape, conf)
-        views = plan_views(gray, camera, planes.patches, planes.labels.shape, conf.rectify, pixels)
+        shape = planes.labels.shape
+        views = plan_views(
+            gray, camera, planes.patches, shape, conf.rectify, pixels, conf.sift.upright
+        )
     result = ImageResult(
         Features.empty(),
         replace(planes, patches=views.patches),

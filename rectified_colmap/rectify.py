@@ -236,6 +236,15 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
     # Virtual normalised coordinates of every kept cell.
     Xv = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
     u = (Xv[0] / Xv[2], Xv[1] / Xv[2])
+    if conf.rotate_to_fit:
+        # the box of the cells is the box of their hull, whose corners are among each grid
+        # row's first and last kept cell (the map to the view is projective, all in front)
+        row = cells[kept] // gw
+        last = len(row) - 1 - np.unique(row[::-1], return_index=True)[1]
+        ends = np.concatenate([np.unique(row, return_index=True)[1], last])
+        Rz = fitting_roll(np.stack([u[0][ends], u[1][ends]], 1))
+        R = Rz @ R
+        u = (Rz[0, 0] * u[0] + Rz[0, 1] * u[1], Rz[1, 0] * u[0] + Rz[1, 1] * u[1])
     # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
     sel = np.linspace(0, len(kept) - 1, min(len(kept), _MAX_FOCAL_SAMPLES)).astype(np.int64)
     sample = cells[kept[sel]]
@@ -257,6 +266,25 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
         lo=np.array([u[0].min(), u[1].min()]) - half,
         hi=np.array([u[0].max(), u[1].max()]) + half,
     )
+
+
+def fitting_roll(u: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation about the virtual optical axis (z) that turns the points ``u`` (N, 2)
+    (virtual normalised coordinates) so that their axis-aligned bounding box is the
+    smallest: the box of ``cv2.minAreaRect``, turned by at most 45 degrees (the identity
+    where no turn shrinks the box). A view's size is its box: a patch seen along a diagonal
+    needs fewer pixels turned, and SIFT (not upright) does not see the turn."""
+    pts = np.asarray(u, np.float64)
+    if len(pts) < 3:
+        return np.eye(3)
+    c = pts.mean(0)
+    _, _, angle = cv2.minAreaRect((pts - c).astype(np.float32))
+    a = -np.deg2rad(((angle + 45.0) % 90.0) - 45.0)  # the box edge onto x, |a| <= 45 deg
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    turned = (pts - c) @ R[:2, :2].T
+    if np.prod(np.ptp(turned, 0)) >= np.prod(np.ptp(pts, 0)):
+        return np.eye(3)
+    return R
 
 
 def view_focal(s: np.ndarray, rule: str) -> float | None:

@@ -19,7 +19,7 @@ budget, the work-grid cells each view covers and the first view covering each ce
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -65,10 +65,14 @@ def plan_views(
     shape: tuple[int, int],
     conf: RectifyConf,
     pixel_budget: float,
+    upright: bool = False,
 ) -> ViewSet:
     """The views of an image with these plane patches on its (h, w) work grid ``shape``
     (the module docstring's steps), all of them within ``pixel_budget`` pixels
-    (rectified_colmap.budget.view_pixel_budget)."""
+    (rectified_colmap.budget.view_pixel_budget). ``upright`` (upright SIFT, whose features
+    take the view's up): no view is turned to fit (``conf.rotate_to_fit`` off)."""
+    if upright:
+        conf = replace(conf, rotate_to_fit=False)
     patches = textured_patches(gray, patches, conf.min_texture)
     todo = patches_worth_rectifying(camera, patches, conf)
     patches, todo = with_tilt_neighbours(camera, patches, todo, conf)

@@ -14,6 +14,7 @@ from rectified_colmap.rectify import (
     image_to_rectified_homography,
     plan_rectification,
     rectified_to_image,
+    fitting_roll,
     rectifying_rotation,
     upsampled_rectification,
     warp_to_rectified,
@@ -324,6 +325,59 @@ def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
             counts[factor, on] = int((err < 3).sum())
     assert counts[0.25, True] >= 1.08 * counts[0.25, False], counts  # measured 239 / 197
     assert abs(counts[2.0, True] - counts[2.0, False]) <= 0.1 * counts[2.0, False], counts
+
+
+def test_fitting_roll_turns_the_smallest_box_onto_the_axes():
+    rng = np.random.default_rng(3)
+    strip = rng.uniform([-2.0, -0.3], [2.0, 0.3], (400, 2))
+    for deg in (0.0, 10.0, 44.0, 46.0, 89.0, 120.0, -20.0):
+        a = np.deg2rad(deg)
+        turned = strip @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T + 5.0
+        Rz = fitting_roll(turned)
+        np.testing.assert_allclose(Rz @ Rz.T, np.eye(3), atol=1e-12)
+        assert Rz[2, 2] == 1.0 and abs(np.linalg.det(Rz) - 1.0) < 1e-12
+        box = np.prod(np.ptp(turned @ Rz[:2, :2].T, 0))
+        assert box <= np.prod(np.ptp(turned, 0)) + 1e-9
+        assert box < 1.03 * np.prod(np.ptp(strip, 0))  # the strip's own box (4 x 0.6)
+        assert abs(np.degrees(np.arctan2(Rz[1, 0], Rz[0, 0]))) <= 45.0 + 1e-9
+    np.testing.assert_array_equal(fitting_roll(strip[:2]), np.eye(3))
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
+def test_a_diagonal_patch_gets_a_smaller_view_turned_to_fit(name):
+    """A diagonal band of the image: turned to fit, its view has fewer pixels for the same
+    content; the virtual camera still looks along the normal and maps back exactly."""
+    cam = camera(name)
+    rows, cols = np.mgrid[0:GH, 0:GW]
+    band = np.abs((rows - GH / 2) - 0.66 * (cols - GW / 2)) < 6
+    n = unit(NORMALS[1])
+    fit = plan_rectification(cam, full_patch(n, band), 0)
+    plain = plan_rectification(cam, full_patch(n, band), 0, RectifyConf(rotate_to_fit=False))
+    assert fit.size[0] * fit.size[1] < 0.8 * plain.size[0] * plain.size[1]
+    np.testing.assert_allclose(fit.R @ -n, [0.0, 0.0, 1.0], atol=1e-12)
+    assert fit.mask.sum() > 0.5 * plain.mask.sum() * (np.prod(fit.size) / np.prod(plain.size))
+    q = np.stack(np.nonzero(fit.mask)[::-1], 1)[::50] + 0.5
+    xy, _ = rectified_to_image(cam, fit, q)
+    X = cam_utils.image_to_rays(cam, xy) @ fit.R.T @ fit.K.T
+    err = np.abs(X[:, :2] / X[:, 2:] - q).max(1)
+    # distorted cameras: a few rays far outside the field fold back into the image through
+    # the distortion polynomial (turned or not); every other pixel maps back exactly
+    assert (err < 1e-6).mean() > (0.999 if cam_utils.is_pinhole(cam) else 0.97)
+
+
+def test_upright_sift_keeps_the_views_unturned():
+    from rectified_colmap.views import plan_views
+
+    cam = camera("PINHOLE")
+    rows, cols = np.mgrid[0:GH, 0:GW]
+    band = np.abs((rows - GH / 2) - 0.66 * (cols - GW / 2)) < 6
+    gray = (np.random.default_rng(0).uniform(0, 255, (H, W))).astype(np.uint8)
+    patch = full_patch(NORMALS[1], band)
+    conf = RectifyConf(min_texture=0.0)
+    turned = plan_views(gray, cam, [patch], (GH, GW), conf, 1e9).rects[0]
+    upright = plan_views(gray, cam, [patch], (GH, GW), conf, 1e9, upright=True).rects[0]
+    np.testing.assert_allclose(upright.R, rectifying_rotation(patch.normal), atol=1e-12)
+    assert not np.allclose(turned.R, upright.R)
 
 
 def test_warp_color_and_bad_size():
