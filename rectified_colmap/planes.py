@@ -231,4 +231,33 @@ def detect_planes(
     labels = assign_directions(normals, D, conf)
     num_valid = max(int(np.isfinite(normals).all(-1).sum()), 1)
     support = np.bincount(labels[labels >= 0].ravel() // 2, minlength=3)[:3] / num_valid
-    return PlaneResult(D, support, labels, find_patches(labels, D, conf))
+    patches = find_patches(labels, D, conf)
+    if conf.fill_gaps:
+        patches = patches_filling_gaps(patches)
+    return PlaneResult(D, support, labels, patches)
+
+
+def patches_filling_gaps(patches: list[Patch]) -> list[Patch]:
+    """Every cell in no patch joins the patch nearest to it on the grid (Euclidean distance
+    to the patch's closest cell; cv2.distanceTransformWithLabels). Cells drop out of patches
+    where the depth's normals are noisy (outliers, windows over a depth jump, the opening,
+    small components), most of all on the planes seen most obliquely: those cells then get
+    the view of the plane around them instead of none."""
+    if not patches:
+        return patches
+    h, w = patches[0].mask.shape
+    owner = np.full(h * w, -1, np.int32)
+    for i, p in enumerate(patches):
+        owner[p.mask.ravel() & (owner < 0)] = i
+    gaps = (owner < 0).reshape(h, w).astype(np.uint8)
+    if not gaps.any():
+        return patches
+    _, lab = cv2.distanceTransformWithLabels(
+        gaps, cv2.DIST_L2, cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    seeds = np.flatnonzero(gaps.ravel() == 0)  # label k: the k-th patch cell in scan order
+    owner = owner[seeds[lab.ravel() - 1]].reshape(h, w)
+    return [
+        Patch(owner == i, p.axis, p.normal, float((owner == i).mean()))
+        for i, p in enumerate(patches)
+    ]

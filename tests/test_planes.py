@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,9 @@ from rectified_colmap.planes import (
     detect_planes,
     fit_dominant_directions,
     find_patches,
+    patches_filling_gaps,
 )
+from rectified_colmap.planes import Patch
 
 
 def random_rotation(rng):
@@ -121,7 +125,8 @@ def test_detect_planes_street_canyon():
     t = canyon_depth(rays_w / rays_w[..., 2:3]) / rays_w[..., 2]  # world z-depth -> t
     z = t  # rays_cam have z = 1, so the parameter along them is the camera z-depth
     normals = estimate_normals(backproject(z, rays_cam))
-    res = detect_planes(normals, PlaneConf(min_area_frac=0.01), np.random.default_rng(0))
+    conf = PlaneConf(min_area_frac=0.01, fill_gaps=False)  # the segmentation itself
+    res = detect_planes(normals, conf, np.random.default_rng(0))
     assert res.directions is not None
     world_axes = R  # rows: world axes in the camera frame (R^T e_i)
     assert axis_errors_deg(res.directions, world_axes).max() < 0.1
@@ -140,3 +145,54 @@ def test_detect_planes_street_canyon():
     assert len(walls) == 2 and walls[0].axis == walls[1].axis
     for p in res.patches:
         assert (normals[p.mask] @ p.normal > np.cos(np.deg2rad(20))).all()
+    # with the gaps filled: the same patches, each grown by the cells around it
+    filled = detect_planes(normals, replace(conf, fill_gaps=True), np.random.default_rng(0))
+    assert len(filled.patches) == len(res.patches)
+    for p, q in zip(res.patches, filled.patches):
+        assert (q.mask >= p.mask).all() and np.array_equal(q.normal, p.normal)
+
+
+def test_cells_in_no_patch_join_the_nearest_patch():
+    h, w = 40, 60
+    left, right = np.zeros((h, w), bool), np.zeros((h, w), bool)
+    left[:, :10] = True
+    right[5:35, 40:] = True
+    patches = [
+        Patch(left, 0, np.array([0.0, 0.0, -1.0]), float(left.mean())),
+        Patch(right, 1, np.array([1.0, 0.0, 0.0]), float(right.mean())),
+    ]
+    out = patches_filling_gaps(patches)
+    assert len(out) == 2 and [p.axis for p in out] == [0, 1]
+    np.testing.assert_array_equal(out[0].normal, patches[0].normal)
+    # a partition of the grid, each patch keeping its own cells ...
+    assert ((out[0].mask.astype(int) + out[1].mask) == 1).all()
+    assert out[0].mask[left].all() and out[1].mask[right].all()
+    assert abs(out[0].area_frac + out[1].area_frac - 1.0) < 1e-12
+    # ... and every other cell going to the nearer one (exact Euclidean distance)
+    rows, cols = np.mgrid[0:h, 0:w]
+    d_left = np.maximum(cols - 9, 0)
+    dy = np.maximum(np.maximum(5 - rows, rows - 34), 0)
+    d_right = np.hypot(np.maximum(40 - cols, 0), dy)
+    clear = np.abs(d_left - d_right) > 1.0
+    np.testing.assert_array_equal(out[0].mask[clear], (d_left < d_right)[clear])
+    assert patches_filling_gaps([]) == []
+
+
+def test_detect_planes_fills_the_gaps_of_noisy_normals_unless_told_not_to():
+    """A plane whose normals are noisy in places (some windows over depth jumps): the
+    cells whose normals drop out of the plane's patch rejoin it with ``fill_gaps``."""
+    rng = np.random.default_rng(0)
+    h, w = 60, 80
+    n = np.array([0.3, -0.2, -0.93])
+    n /= np.linalg.norm(n)
+    normals = np.broadcast_to(n, (h, w, 3)).copy()
+    normals += rng.normal(0, 0.02, normals.shape)
+    bad = rng.random((h, w)) < 0.2
+    normals[bad] = np.nan  # no normal there
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    plain = detect_planes(normals, PlaneConf(fill_gaps=False), np.random.default_rng(0))
+    filled = detect_planes(normals, PlaneConf(), np.random.default_rng(0))
+    cover = np.any([p.mask for p in plain.patches], axis=0)
+    assert cover.mean() < 0.9
+    assert np.any([p.mask for p in filled.patches], axis=0).all()
+    np.testing.assert_array_equal(filled.labels, plain.labels)
