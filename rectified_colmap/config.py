@@ -34,7 +34,7 @@ class PlaneConf:
     inlier_angle_deg: float = 15.0  # normals further than this from every axis: outliers
     opening_radius: int = 1  # morphological opening of each label mask (work-size pixels)
     min_normals: int = 100  # fewer valid normals: no dominant directions (plain SIFT)
-    fill_gaps: bool = True  # cells in no patch join the nearest patch (planes.patches_filling_gaps)
+    fill_gaps: bool = False  # cells in no patch join the nearest patch (planes.patches_filling_gaps)
 
 
 VIEW_RESOLUTIONS = ("finest", "area", "coarsest")

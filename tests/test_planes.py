@@ -178,7 +178,7 @@ def test_cells_in_no_patch_join_the_nearest_patch():
     assert patches_filling_gaps([]) == []
 
 
-def test_detect_planes_fills_the_gaps_of_noisy_normals_unless_told_not_to():
+def test_detect_planes_fills_the_gaps_of_noisy_normals_when_asked():
     """A plane whose normals are noisy in places (some windows over depth jumps): the
     cells whose normals drop out of the plane's patch rejoin it with ``fill_gaps``."""
     rng = np.random.default_rng(0)
@@ -191,7 +191,7 @@ def test_detect_planes_fills_the_gaps_of_noisy_normals_unless_told_not_to():
     normals[bad] = np.nan  # no normal there
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
     plain = detect_planes(normals, PlaneConf(fill_gaps=False), np.random.default_rng(0))
-    filled = detect_planes(normals, PlaneConf(), np.random.default_rng(0))
+    filled = detect_planes(normals, PlaneConf(fill_gaps=True), np.random.default_rng(0))
     cover = np.any([p.mask for p in plain.patches], axis=0)
     assert cover.mean() < 0.9
     assert np.any([p.mask for p in filled.patches], axis=0).all()
