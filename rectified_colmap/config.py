@@ -34,7 +34,7 @@ class PlaneConf:
     inlier_angle_deg: float = 15.0  # normals further than this from every axis: outliers
     opening_radius: int = 1  # morphological opening of each label mask (work-size pixels)
     min_normals: int = 100  # fewer valid normals: no dominant directions (plain SIFT)
-    fill_gaps: bool = False  # cells in no patch join the nearest patch (planes.patches_filling_gaps)
+    fill_gaps: bool = False  # cells in no patch join the nearest (planes.patches_filling_gaps)
 
 
 VIEW_RESOLUTIONS = ("finest", "area", "coarsest")
@@ -66,8 +66,6 @@ class RectifyConf:
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
     tilt_bank_min_angle_deg: float = 45.0  # views seen more frontally get no neighbours
-    rotate_to_fit: bool = True  # views turned about their axis to the smallest box
-    # (rectify.fitting_roll; False: the smallest rotation, image up stays about up)
 
     def __post_init__(self):
         check_view_resolution(self.view_resolution)

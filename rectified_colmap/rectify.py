@@ -195,6 +195,7 @@ def plan_rectification(
     patch_index: int,
     conf: RectifyConf = RectifyConf(),
     scale: float = 1.0,
+    turn: bool = True,
 ) -> Rectification | None:
     """Virtual camera, size and valid mask for one patch; None if nothing usable remains
     (e.g. everything beyond the viewing-angle limit). ``scale`` multiplies the virtual focal
@@ -205,15 +206,20 @@ def plan_rectification(
     conf.view_resolution, view_focal); the size is then capped by conf.max_patch_side,
     scaling f down.
     """
-    view = patch_view(camera, patch, conf)
+    view = patch_view(camera, patch, conf, turn)
     if view is None:
         return None
     return finish_rectification(camera, view, patch_index, conf, scale)
 
 
-def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> PatchView | None:
+def patch_view(
+    camera: pycolmap.Camera, patch: Patch, conf: RectifyConf, turn: bool = True
+) -> PatchView | None:
     """Rotation, focal length, extent and areas of the patch's cells within the viewing
-    angle (plan_rectification without the scale); None when no cell is usable."""
+    angle (plan_rectification without the scale); None when no cell is usable. ``turn``:
+    the view turned about its axis to the smallest box (``fitting_roll``; off for upright
+    SIFT, whose features take the view's up: the smallest rotation keeps about the
+    image's)."""
     n = np.asarray(patch.normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
     mask = np.asarray(patch.mask, bool)
@@ -236,7 +242,7 @@ def patch_view(camera: pycolmap.Camera, patch: Patch, conf: RectifyConf) -> Patc
     # Virtual normalised coordinates of every kept cell.
     Xv = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
     u = (Xv[0] / Xv[2], Xv[1] / Xv[2])
-    if conf.rotate_to_fit:
+    if turn:
         # the box of the cells is the box of their hull, whose corners are among each grid
         # row's first and last kept cell (the map to the view is projective, all in front)
         row = cells[kept] // gw

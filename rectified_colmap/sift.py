@@ -252,6 +252,23 @@ def plain_sift(gray: np.ndarray, conf: SiftConf, sift: Sift | None = None) -> Fe
     )
 
 
+def warp_upsampling(size: tuple[int, int], budget: int, first_octave: int, conf: SiftConf) -> int:
+    """How much finer than planned a view of ``size`` (w, h) with this SIFT ``budget`` is
+    warped (``rectified_features``): 2**-first_octave for a negative first octave with
+    ``conf.patch_upsample_in_warp``, unless coarse-first pays in the view or the finer view
+    would pass ``conf.max_image_size``; else 1."""
+    w, h = size
+    up = 2 ** max(0, -first_octave)
+    if (
+        up == 1
+        or not conf.patch_upsample_in_warp
+        or coarse_first_pays((h, w), budget, conf)
+        or max(w, h) * up > conf.max_image_size
+    ):
+        return 1
+    return up
+
+
 def rectified_features(
     gray: np.ndarray,
     camera: pycolmap.Camera,
@@ -267,24 +284,12 @@ def rectified_features(
     border of the warped region are dropped. Their source (``patch``) is
     ``rect.patch_index``.
 
-    A negative first octave (small images: SIFT's upsampled octave) is taken in the warp
-    (``conf.patch_upsample_in_warp``, unless coarse-first pays in the view): the view is
-    warped from the image at 2**-first_octave x its planned resolution (when that stays
-    within ``conf.max_image_size``, which SIFT would downscale) and SIFT starts at octave 0
-    there. The same scale space and cost as SIFT upsampling the planned view, but
-    where the image's pixel budget shrank the view below the image's own resolution
-    (rectified_colmap.views) the finer octave holds the image's detail, not an
-    interpolation of the shrunk view."""
+    A negative first octave (small images) is taken in the warp (``warp_upsampling``): the
+    view warped from the image that much finer, SIFT from octave 0 there. The same scale
+    space and cost as SIFT upsampling the planned view, but where the pixel budget shrank
+    the view below the image's resolution the finer octave holds the image's detail."""
     first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
-    up = 1
-    w, h = rect.size
-    if (
-        first_octave < 0
-        and conf.patch_upsample_in_warp
-        and not coarse_first_pays((h, w), budget, conf)
-        and max(w, h) * 2**-first_octave <= conf.max_image_size
-    ):
-        up = 2**-first_octave
+    up = warp_upsampling(rect.size, budget, first_octave, conf)
     patch_img = warp_to_rectified(gray, camera, upsampled_rectification(rect, up))
     feats = detect_sift(
         patch_img,

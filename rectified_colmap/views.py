@@ -19,7 +19,7 @@ budget, the work-grid cells each view covers and the first view covering each ce
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -70,13 +70,11 @@ def plan_views(
     """The views of an image with these plane patches on its (h, w) work grid ``shape``
     (the module docstring's steps), all of them within ``pixel_budget`` pixels
     (rectified_colmap.budget.view_pixel_budget). ``upright`` (upright SIFT, whose features
-    take the view's up): no view is turned to fit (``conf.rotate_to_fit`` off)."""
-    if upright:
-        conf = replace(conf, rotate_to_fit=False)
+    take the view's up): no view is turned to fit (rectify.patch_view's ``turn``)."""
     patches = textured_patches(gray, patches, conf.min_texture)
     todo = patches_worth_rectifying(camera, patches, conf)
     patches, todo = with_tilt_neighbours(camera, patches, todo, conf)
-    rects = rectifications_within_budget(camera, patches, todo, conf, pixel_budget)
+    rects = rectifications_within_budget(camera, patches, todo, conf, pixel_budget, not upright)
     masks = viewing_masks(camera, rects, patches, shape, conf.max_viewing_angle_deg)
     return ViewSet(patches, rects, masks, viewing_coverage(masks))
 
@@ -205,12 +203,13 @@ def rectifications_within_budget(
     indices: list[int],
     conf: RectifyConf,
     pixel_budget: float,
+    turn: bool = True,
 ) -> list[Rectification]:
     """Rectifications (plan_rectification) of the given patches, scaled down together
     when their summed size (w x h) exceeds ``pixel_budget`` (to within a view's border
     when views are tiny). Each patch's view is computed once, and its mask only at the
-    final scale."""
-    views = [(i, patch_view(camera, patches[i], conf)) for i in indices]
+    final scale. ``turn``: views turned to their smallest box (rectify.patch_view)."""
+    views = [(i, patch_view(camera, patches[i], conf, turn)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
     scale = 1.0
     for _ in range(4):  # the borders do not scale: a few steps to fit

@@ -352,7 +352,7 @@ def test_a_diagonal_patch_gets_a_smaller_view_turned_to_fit(name):
     band = np.abs((rows - GH / 2) - 0.66 * (cols - GW / 2)) < 6
     n = unit(NORMALS[1])
     fit = plan_rectification(cam, full_patch(n, band), 0)
-    plain = plan_rectification(cam, full_patch(n, band), 0, RectifyConf(rotate_to_fit=False))
+    plain = plan_rectification(cam, full_patch(n, band), 0, turn=False)
     assert fit.size[0] * fit.size[1] < 0.8 * plain.size[0] * plain.size[1]
     np.testing.assert_allclose(fit.R @ -n, [0.0, 0.0, 1.0], atol=1e-12)
     assert fit.mask.sum() > 0.5 * plain.mask.sum() * (np.prod(fit.size) / np.prod(plain.size))
