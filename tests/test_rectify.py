@@ -272,6 +272,43 @@ def test_upsampled_rectification_is_the_same_view_on_a_finer_grid(name):
         )
 
 
+PLANE_K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+
+def oblique_and_frontal_shots(oblique_deg: float):
+    """A textured plane seen 640x480 (f = 500) from ``oblique_deg`` and from 20 degrees off
+    its normal: (camera, image 0 (oblique), image 1, H01 image 0 -> 1 (through PLANE_K), the
+    plane's normal facing camera 0)."""
+    from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
+
+    tex = textured_image(1200, 1200, 5)
+    shots = []
+    for deg in (oblique_deg, 20.0):
+        a = np.deg2rad(deg)
+        R, t = look_at([4.0 * np.sin(a), 0.0, 4.0 * np.cos(a)], [0, 0, 0], up=(0, 1.0, 0))
+        shots.append((plane_view(tex, 0.008, PLANE_K, R, t, (640, 480))[0], R, t))
+    (img0, R0, t0), (img1, R1, t1) = shots
+    H01 = (
+        PLANE_K
+        @ np.stack([R1[:, 0], R1[:, 1], t1], 1)
+        @ np.linalg.inv(np.stack([R0[:, 0], R0[:, 1], t0], 1))
+        @ np.linalg.inv(PLANE_K)
+    )
+    n_true = -R0[:, 2] if R0[2, 2] > 0 else R0[:, 2]
+    cam = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
+    return cam, img0, img1, H01, n_true
+
+
+def gt_consistent_matches(a, b, H01: np.ndarray, px: float = 3.0) -> int:
+    """Mutual ratio-test matches of Features a (image 0) and b (image 1) within ``px`` of
+    the ground truth H01."""
+    from rectified_colmap.eval.matching import match_ratio
+
+    m = match_ratio(a.descriptors.astype(np.float32), b.descriptors.astype(np.float32), 0.8, True)
+    X = np.c_[a.keypoints[m[:, 0]], np.ones(len(m))] @ H01.T
+    return int((np.linalg.norm(X[:, :2] / X[:, 2:] - b.keypoints[m[:, 1]], axis=1) < px).sum())
+
+
 def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
     """A plane 75 degrees from the view, rectified with its true normal, matched to a view
     20 degrees from it (plain SIFT). With the view shrunk by a small pixel budget, warping
@@ -279,29 +316,12 @@ def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
     matches than SIFT upsampling the shrunk view; with a budget that does not shrink it,
     the two are the same scale space (about the same count)."""
     from rectified_colmap.config import ExtractConf
-    from rectified_colmap.eval.matching import match_ratio
     from rectified_colmap.geometry import scaled_size
     from rectified_colmap.pipeline import extract_image, features_on_top
     from rectified_colmap.sift import plain_sift
     from rectified_colmap.views import plan_views
-    from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
 
-    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    cam = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
-    tex = textured_image(1200, 1200, 5)
-    shots = []
-    for deg in (75.0, 20.0):
-        a = np.deg2rad(deg)
-        R, t = look_at([4.0 * np.sin(a), 0.0, 4.0 * np.cos(a)], [0, 0, 0], up=(0, 1.0, 0))
-        shots.append((plane_view(tex, 0.008, K, R, t, (640, 480))[0], R, t))
-    (img0, R0, t0), (img1, R1, t1) = shots
-    H01 = (
-        K
-        @ np.stack([R1[:, 0], R1[:, 1], t1], 1)
-        @ np.linalg.inv(np.stack([R0[:, 0], R0[:, 1], t0], 1))
-        @ np.linalg.inv(K)
-    )
-    n_true = -R0[:, 2] if R0[2, 2] > 0 else R0[:, 2]  # facing camera 0
+    cam, img0, img1, H01, n_true = oblique_and_frontal_shots(75.0)
     b = extract_image(img1, cam, None).features  # plain SIFT
     counts = {}
     for factor in (0.25, 2.0):
@@ -317,12 +337,7 @@ def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
             pixels = view_pixel_budget(img0.shape, conf)
             views = plan_views(img0, cam, [patch], (h, w), conf.rectify, pixels)
             a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
-            m = match_ratio(
-                a.descriptors.astype(np.float32), b.descriptors.astype(np.float32), 0.8, True
-            )
-            X = np.c_[a.keypoints[m[:, 0]], np.ones(len(m))] @ H01.T
-            err = np.linalg.norm(X[:, :2] / X[:, 2:] - b.keypoints[m[:, 1]], axis=1)
-            counts[factor, on] = int((err < 3).sum())
+            counts[factor, on] = gt_consistent_matches(a, b, H01)
     assert counts[0.25, True] >= 1.08 * counts[0.25, False], counts  # measured 239 / 197
     assert abs(counts[2.0, True] - counts[2.0, False]) <= 0.1 * counts[2.0, False], counts
 
@@ -444,30 +459,12 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
     points make): few GT-consistent matches from its single view (it stays foreshortened),
     several times more with the tilt bank (its neighbour lands near the true tilt)."""
     from rectified_colmap.config import ExtractConf
-    from rectified_colmap.eval.matching import match_ratio
     from rectified_colmap.geometry import scaled_size
     from rectified_colmap.pipeline import extract_image, features_on_top
     from rectified_colmap.sift import plain_sift
-    from rectified_colmap_research.synth.planar import look_at, plane_view, textured_image
     from rectified_colmap.views import plan_views
 
-    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    cam = make_camera("PINHOLE", [500.0, 500.0, 320.0, 240.0], 640, 480)
-    tex = textured_image(1200, 1200, 5)
-    views = []
-    for deg in (80.0, 20.0):
-        a = np.deg2rad(deg)
-        R, t = look_at([4.0 * np.sin(a), 0.0, 4.0 * np.cos(a)], [0, 0, 0], up=(0, 1.0, 0))
-        img, _ = plane_view(tex, 0.008, K, R, t, (640, 480))
-        views.append((img, R, t))
-    (img0, R0, t0), (img1, R1, t1) = views
-    H01 = (
-        K
-        @ np.stack([R1[:, 0], R1[:, 1], t1], 1)
-        @ np.linalg.inv(np.stack([R0[:, 0], R0[:, 1], t0], 1))
-        @ np.linalg.inv(K)
-    )
-    n_true = -R0[:, 2] if R0[2, 2] > 0 else R0[:, 2]  # plane normal, facing camera 0
+    cam, img0, img1, H01, n_true = oblique_and_frontal_shots(80.0)
     axis = unit(np.cross(n_true, [0, 0, 1.0]))
     e = np.deg2rad(12.0)
     Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
@@ -485,10 +482,5 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
         assert len(views.rects) == 1 + 2 * steps
         a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
         b = extract_image(img1, cam, None, conf).features  # plain SIFT
-        m = match_ratio(
-            a.descriptors.astype(np.float32), b.descriptors.astype(np.float32), 0.8, True
-        )
-        X = np.c_[a.keypoints[m[:, 0]], np.ones(len(m))] @ H01.T
-        err = np.linalg.norm(X[:, :2] / X[:, 2:] - b.keypoints[m[:, 1]], axis=1)
-        counts.append(int((err < 3).sum()))
+        counts.append(gt_consistent_matches(a, b, H01))
     assert counts[1] >= 3 * max(counts[0], 5), counts
