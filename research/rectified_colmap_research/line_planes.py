@@ -241,7 +241,9 @@ def extract_depth_free(
             planes = add_plane_hypotheses(camera, planes, lines.segments, conf)
     with timed(t, "homographies"):
         pixels = view_pixel_budget(gray.shape, conf)
-        views = plan_views(gray, camera, planes.patches, (h, w), conf.rectify, pixels)
+        views = plan_views(
+            gray, camera, planes.patches, (h, w), conf.rectify, pixels, conf.sift.upright
+        )
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift)
     feats = features_on_top(gray, camera, views, plain, conf, None, t) if views else plain

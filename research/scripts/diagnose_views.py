@@ -86,11 +86,12 @@ def image_views(gray, rgb, camera, normal, region, conf: ExtractConf, network, u
     planes = with_vanishing_points(gray, camera, planes, conf, rng, {})
     shape = planes.labels.shape
     budget = view_pixel_budget(gray.shape, conf)
-    views = plan_views(gray, camera, planes.patches, shape, conf.rectify, budget)
+    upright = conf.sift.upright  # as the pipeline: upright SIFT's views are not turned
+    views = plan_views(gray, camera, planes.patches, shape, conf.rectify, budget, upright)
     if not uncapped:
         return views, None
     loose = dataclasses.replace(conf.rectify, **UNCAPPED)
-    return views, plan_views(gray, camera, planes.patches, shape, loose, 1e12)
+    return views, plan_views(gray, camera, planes.patches, shape, loose, 1e12, upright)
 
 
 def stage_features(gray, camera, conf: ExtractConf, views, uncapped, unlimited: int, sift):
