@@ -309,6 +309,19 @@ def gt_consistent_matches(a, b, H01: np.ndarray, px: float = 3.0) -> int:
     return int((np.linalg.norm(X[:, :2] / X[:, 2:] - b.keypoints[m[:, 1]], axis=1) < px).sum())
 
 
+def test_warp_upsampling_only_where_sift_would_upsample_the_view():
+    from rectified_colmap.config import SiftConf
+    from rectified_colmap.sift import warp_upsampling
+
+    conf = SiftConf()
+    assert warp_upsampling((400, 300), 2000, -1, conf) == 2  # 60 px / feature: upsampled
+    assert warp_upsampling((400, 300), 2000, 0, conf) == 1  # no upsampled octave
+    assert warp_upsampling((400, 300), 2000, -1, replace(conf, patch_upsample_in_warp=False)) == 1
+    assert warp_upsampling((1000, 1000), 100, -1, conf) == 1  # coarse-first pays there
+    assert warp_upsampling((1700, 200), 2000, -1, conf) == 1  # 3400 > max_image_size
+    assert warp_upsampling((1600, 200), 2000, -1, conf) == 2
+
+
 def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
     """A plane 75 degrees from the view, rectified with its true normal, matched to a view
     20 degrees from it (plain SIFT). With the view shrunk by a small pixel budget, warping
