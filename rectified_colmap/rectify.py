@@ -167,6 +167,13 @@ def _rectified_mask(
             & (xy[:, 1] < camera.height)
         )
     idx, xy = idx[inside], xy[inside]
+    # Beyond the distortion's monotonic range rays fold back into the image: keep the rays
+    # that come back from their pixel (the undistortion's principal branch), to 0.01 px.
+    m = X.reshape(-1, 3)[idx]
+    back = cam_utils.image_to_rays(camera, xy)[:, :2] - m[:, :2] / m[:, 2:]
+    tol = 0.01 / max(cam_utils.calibration_matrix(camera)[0, 0], 1e-12)
+    same = np.abs(back).max(1) <= tol
+    idx, xy = idx[same], xy[same]
     col = np.minimum((xy[:, 0] * (gw / camera.width)).astype(np.int64), gw - 1)
     row = np.minimum((xy[:, 1] * (gh / camera.height)).astype(np.int64), gh - 1)
     out = np.zeros(h * w, bool)

@@ -192,6 +192,38 @@ def test_mask_excludes_grazing_rays_and_none_when_nothing_left():
     assert plan_rectification(cam, full_patch(n), 0, RectifyConf(max_viewing_angle_deg=20)) is None
 
 
+def test_mask_excludes_rays_the_distortion_folds_back_into_the_image():
+    """Radial distortion with k < 0 is monotonic only up to a radius: rays beyond it fold
+    back into the image, so their pixels are not where the ray would be seen. Every masked
+    pixel's ray must come back from its image point (the undistortion's principal branch)."""
+    cam = camera("SIMPLE_RADIAL")  # r (1 + k r^2) turns back at r = (-3 k)^-1/2 = 2.04
+    n = unit([0.0, -1.0, -0.15])  # ground: the rectified view reaches far off the axis
+    conf = RectifyConf(max_viewing_angle_deg=89, max_patch_side=1000)
+    rect = plan_rectification(cam, full_patch(n), 0, conf)
+    from rectified_colmap.rectify import _rectified_pixel_rays
+
+    X = _rectified_pixel_rays(rect)
+    m = X[..., :2] / X[..., 2:]
+    r = np.linalg.norm(m, axis=-1)
+    folded = (X[..., 2] > 0) & (r > 1 / np.sqrt(0.24))
+    xy = rays_to_image(cam, X[folded])
+    inside = (xy >= 0).all(1) & (xy[:, 0] < W) & (xy[:, 1] < H)
+    assert inside.sum() > 100  # the scene has such rays: their pixels lie in the image...
+    assert not rect.mask[folded].any()  # ...and the mask excludes them
+    q = np.stack(np.nonzero(rect.mask)[::-1], 1) + 0.5
+    xy, _ = rectified_to_image(cam, rect, q)
+    back = cam_utils.image_to_rays(cam, xy)[:, :2]
+    assert np.abs(back - m[rect.mask]).max() * 200.0 < 0.01  # every masked ray, < 0.01 px
+    # The rays within the monotonic range and the viewing angle that the image sees stay.
+    cos_view = -(X @ n) / np.linalg.norm(X, axis=-1)
+    seen = (X[..., 2] > 0) & (r < 2.0) & (cos_view > np.cos(np.deg2rad(89)))
+    xy = rays_to_image(cam, X[seen])
+    seen[seen] = (xy >= 0).all(1) & (xy[:, 0] < W) & (xy[:, 1] < H)
+    assert rect.mask[seen].mean() > 0.98
+    out = warp_to_rectified(np.full((H, W), 200, np.uint8), cam, rect)
+    assert (out[folded] == 0).all() and (out[rect.mask] > 0).mean() > 0.95
+
+
 def test_warp_masks_rays_behind_camera():
     cam = camera("PINHOLE")
     n = unit([-1.0, 0.0, -0.05])  # a wall almost parallel to the optical axis
