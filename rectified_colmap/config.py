@@ -34,7 +34,19 @@ class PlaneConf:
     inlier_angle_deg: float = 15.0  # normals further than this from every axis: outliers
     opening_radius: int = 1  # morphological opening of each label mask (work-size pixels)
     min_normals: int = 100  # fewer valid normals: no dominant directions (plain SIFT)
-    fill_gaps: bool = False  # cells in no patch join the nearest (planes.patches_filling_gaps)
+    fill_gaps: str = "hull"  # cells in no patch: none | hull | nearest (FILL_GAPS below)
+
+    def __post_init__(self):
+        if self.fill_gaps not in FILL_GAPS:
+            raise ValueError(
+                f"planes.fill_gaps must be one of {', '.join(FILL_GAPS)}, got {self.fill_gaps!r}"
+            )
+
+
+FILL_GAPS = ("none", "hull", "nearest")
+"""``PlaneConf.fill_gaps``: cells in no patch stay out (none), join the patch whose convex
+hull holds them (hull: planes.patches_filling_hulls; the view's box stays), or join the
+nearest patch (nearest: planes.patches_filling_gaps)."""
 
 
 VIEW_RESOLUTIONS = ("finest", "area", "coarsest")

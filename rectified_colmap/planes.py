@@ -232,7 +232,9 @@ def detect_planes(
     num_valid = max(int(np.isfinite(normals).all(-1).sum()), 1)
     support = np.bincount(labels[labels >= 0].ravel() // 2, minlength=3)[:3] / num_valid
     patches = find_patches(labels, D, conf)
-    if conf.fill_gaps:
+    if conf.fill_gaps == "hull":
+        patches = patches_filling_hulls(patches)
+    elif conf.fill_gaps == "nearest":
         patches = patches_filling_gaps(patches)
     return PlaneResult(D, support, labels, patches)
 
@@ -261,3 +263,38 @@ def patches_filling_gaps(patches: list[Patch]) -> list[Patch]:
         Patch(owner == i, p.axis, p.normal, float((owner == i).mean()))
         for i, p in enumerate(patches)
     ]
+
+
+def patches_filling_hulls(patches: list[Patch]) -> list[Patch]:
+    """Every cell in no patch whose centre lies in a patch's convex hull (of its cells'
+    centres, edges included) joins that patch, the largest where hulls overlap. The view
+    of a patch spans its hull's box already (rectify.patch_view): the filled cells keep the
+    view and its pixels, only the mask grows (holes and bays where the normals were noisy)."""
+    if not patches:
+        return patches
+    free = ~np.any([p.mask for p in patches], axis=0)
+    out = []
+    for p in patches:
+        take = free & convex_hull_cells(p.mask)
+        free &= ~take
+        mask = p.mask | take
+        out.append(Patch(mask, p.axis, p.normal, float(mask.mean())))
+    return out
+
+
+def convex_hull_cells(mask: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the cells whose centres lie in the convex hull of ``mask``'s cell
+    centres (on its edges included); exact half-plane tests, no rasterisation."""
+    pts = cv2.findNonZero(mask.astype(np.uint8))
+    out = np.zeros(mask.shape, bool)
+    if pts is None:
+        return out
+    hull = cv2.convexHull(pts, clockwise=False).reshape(-1, 2).astype(np.int64)
+    (x0, y0), (x1, y1) = hull.min(0), hull.max(0)
+    ys, xs = np.mgrid[y0 : y1 + 1, x0 : x1 + 1]
+    inside = np.ones(xs.shape, bool)
+    for (ax, ay), (bx, by) in zip(hull, np.roll(hull, -1, 0)):
+        cross = (bx - ax) * (ys - ay) - (by - ay) * (xs - ax)  # integers: exact
+        inside &= cross >= 0
+    out[y0 : y1 + 1, x0 : x1 + 1] = inside
+    return out

@@ -12,6 +12,7 @@ from rectified_colmap.planes import (
     fit_dominant_directions,
     find_patches,
     patches_filling_gaps,
+    patches_filling_hulls,
 )
 from rectified_colmap.planes import Patch
 
@@ -125,7 +126,7 @@ def test_detect_planes_street_canyon():
     t = canyon_depth(rays_w / rays_w[..., 2:3]) / rays_w[..., 2]  # world z-depth -> t
     z = t  # rays_cam have z = 1, so the parameter along them is the camera z-depth
     normals = estimate_normals(backproject(z, rays_cam))
-    conf = PlaneConf(min_area_frac=0.01, fill_gaps=False)  # the segmentation itself
+    conf = PlaneConf(min_area_frac=0.01, fill_gaps="none")  # the segmentation itself
     res = detect_planes(normals, conf, np.random.default_rng(0))
     assert res.directions is not None
     world_axes = R  # rows: world axes in the camera frame (R^T e_i)
@@ -146,10 +147,12 @@ def test_detect_planes_street_canyon():
     for p in res.patches:
         assert (normals[p.mask] @ p.normal > np.cos(np.deg2rad(20))).all()
     # with the gaps filled: the same patches, each grown by the cells around it
-    filled = detect_planes(normals, replace(conf, fill_gaps=True), np.random.default_rng(0))
-    assert len(filled.patches) == len(res.patches)
-    for p, q in zip(res.patches, filled.patches):
-        assert (q.mask >= p.mask).all() and np.array_equal(q.normal, p.normal)
+    for mode in ("hull", "nearest"):
+        rng = np.random.default_rng(0)
+        filled = detect_planes(normals, replace(conf, fill_gaps=mode), rng)
+        assert len(filled.patches) == len(res.patches)
+        for p, q in zip(res.patches, filled.patches):
+            assert (q.mask >= p.mask).all() and np.array_equal(q.normal, p.normal)
 
 
 def test_cells_in_no_patch_join_the_nearest_patch():
@@ -178,6 +181,38 @@ def test_cells_in_no_patch_join_the_nearest_patch():
     assert patches_filling_gaps([]) == []
 
 
+def test_cells_in_no_patch_inside_a_patch_hull_join_it():
+    """An L-shaped patch and a square one: the cells in no patch inside the L's convex hull
+    (the triangle its corner cuts off) join the L, none of the square's cells move, and
+    cells outside every hull stay out."""
+    h, w = 40, 60
+    ell, square = np.zeros((h, w), bool), np.zeros((h, w), bool)
+    ell[:, :10] = True
+    ell[30:, :30] = True
+    square[5:15, 40:50] = True
+    patches = [
+        Patch(ell, 0, np.array([0.0, 0.0, -1.0]), float(ell.mean())),
+        Patch(square, 1, np.array([1.0, 0.0, 0.0]), float(square.mean())),
+    ]
+    out = patches_filling_hulls(patches)
+    assert [p.axis for p in out] == [0, 1]
+    np.testing.assert_array_equal(out[1].mask, square)  # convex: nothing to fill
+    rows, cols = np.mgrid[0:h, 0:w]
+    # the L's hull: x <= 29 below the line from its top right (9, 0) to (29, 30)
+    inside = (cols <= 29) & ((cols - 9) * 30 <= (rows - 0) * 20)
+    grown = out[0].mask & ~ell
+    assert grown.any() and not (grown & ~inside).any()
+    margin = (cols - 9) * 30 <= rows * 20 - 60  # a cell's width inside the hull's edge
+    assert out[0].mask[margin & (cols <= 29)].all()
+    assert abs(out[0].area_frac - out[0].mask.mean()) < 1e-12
+    assert patches_filling_hulls([]) == []
+    # cells already in another patch are not taken
+    other = np.zeros((h, w), bool)
+    other[20:25, 12:16] = True
+    out = patches_filling_hulls(patches + [Patch(other, 2, np.array([0, 1.0, 0]), 0.0)])
+    assert not (out[0].mask & other).any() and (out[2].mask == other).all()
+
+
 def test_detect_planes_fills_the_gaps_of_noisy_normals_when_asked():
     """A plane whose normals are noisy in places (some windows over depth jumps): the
     cells whose normals drop out of the plane's patch rejoin it with ``fill_gaps``."""
@@ -190,9 +225,17 @@ def test_detect_planes_fills_the_gaps_of_noisy_normals_when_asked():
     bad = rng.random((h, w)) < 0.2
     normals[bad] = np.nan  # no normal there
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    plain = detect_planes(normals, PlaneConf(fill_gaps=False), np.random.default_rng(0))
-    filled = detect_planes(normals, PlaneConf(fill_gaps=True), np.random.default_rng(0))
+    plain = detect_planes(normals, PlaneConf(fill_gaps="none"), np.random.default_rng(0))
+    filled = detect_planes(normals, PlaneConf(fill_gaps="nearest"), np.random.default_rng(0))
     cover = np.any([p.mask for p in plain.patches], axis=0)
     assert cover.mean() < 0.9
     assert np.any([p.mask for p in filled.patches], axis=0).all()
     np.testing.assert_array_equal(filled.labels, plain.labels)
+    # the default fills the holes inside the patch, not the frame outside its hull
+    hull = detect_planes(normals, PlaneConf(), np.random.default_rng(0))
+    assert len(hull.patches) == len(plain.patches)
+    masks = np.array([p.mask for p in hull.patches])
+    assert (masks.sum(0) <= 1).all() and (masks.any(0) >= cover).all()
+    inner = np.zeros((h, w), bool)
+    inner[3:-3, 3:-3] = True
+    assert masks.any(0)[inner].all() and cover[inner].mean() < 0.9
