@@ -267,9 +267,11 @@ def patches_filling_gaps(patches: list[Patch]) -> list[Patch]:
 
 def patches_filling_hulls(patches: list[Patch]) -> list[Patch]:
     """Every cell in no patch whose centre lies in a patch's convex hull (of its cells'
-    centres, edges included) joins that patch, the largest where hulls overlap. The view
-    of a patch spans its hull's box already (rectify.patch_view): the filled cells keep the
-    view and its pixels, only the mask grows (holes and bays where the normals were noisy)."""
+    centres, edges included) joins that patch, the largest where hulls overlap: holes and
+    bays where the normals were noisy. The filled cells lie in the hull, whose box is the
+    box of the patch's own cells, so a view (rectify.patch_view: the box of its cells) keeps
+    its box and pixels and only its mask grows; where the texture cut
+    (views.textured_patches) shrank the box, at most back to that box."""
     if not patches:
         return patches
     free = ~np.any([p.mask for p in patches], axis=0)
