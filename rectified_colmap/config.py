@@ -188,10 +188,31 @@ class ExtractConf:
                     raise KeyError(f"{section}.{key}: {RETIRED_KEYS[f'{section}.{key}']}")
                 if not hasattr(sub, key):
                     raise KeyError(f"unknown configuration key {section}.{key}")
-                setattr(sub, key, type(getattr(sub, key))(value))
+                setattr(sub, key, _typed(f"{section}.{key}", getattr(sub, key), value))
             if hasattr(sub, "__post_init__"):  # the section's own validation
                 sub.__post_init__()
         return out
+
+
+def _typed(name: str, default: Any, value: Any) -> Any:
+    """``value`` as the type of the key's ``default``; ValueError (one line) where that would
+    change its meaning: a bool from anything but true / false (bool("false") is True), a
+    str from a non-string, an int from a fraction or a bool, a float from a bool."""
+    kind = type(default)
+    ok = {
+        bool: isinstance(value, bool),
+        str: isinstance(value, str),
+        int: isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and float(value).is_integer(),
+        float: isinstance(value, int | float) and not isinstance(value, bool),
+    }.get(kind, True)
+    if not ok:
+        raise ValueError(f"{name} must be {_KIND_NAMES.get(kind, kind.__name__)}, got {value!r}")
+    return kind(value)
+
+
+_KIND_NAMES = {bool: "true or false", str: "a string", int: "an integer", float: "a number"}
 
 
 def merge_conf(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:

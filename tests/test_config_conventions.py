@@ -24,6 +24,29 @@ def test_conf_from_dict_merges_and_rejects_unknown():
         ExtractConf.from_dict(confs[name])
 
 
+@pytest.mark.parametrize(
+    "section, key, value",
+    [
+        ("sift", "upright", "false"),  # bool("false") would be True
+        ("sift", "upright", 0),
+        ("planes", "fill_gaps", False),  # a conf of the version where it was a bool
+        ("sift", "max_num_features", 1024.5),
+        ("sift", "max_num_features", True),
+        ("rectify", "max_viewing_angle_deg", "85"),
+    ],
+)
+def test_conf_from_dict_rejects_values_of_another_type(section, key, value):
+    with pytest.raises(ValueError, match=rf"{section}\.{key} must be"):
+        ExtractConf.from_dict({section: {key: value}})
+
+
+def test_conf_from_dict_takes_numbers_as_the_key_needs():
+    c = ExtractConf.from_dict({"sift": {"max_num_features": 1024.0}, "rectify": {"border": 4}})
+    assert c.sift.max_num_features == 1024 and type(c.sift.max_num_features) is int
+    c = ExtractConf.from_dict({"rectify": {"max_viewing_angle_deg": 85}})
+    assert type(c.rectify.max_viewing_angle_deg) is float
+
+
 def test_merge_conf_overrides_key_by_key_and_changes_no_input():
     base = {
         "vp": {"line_hypotheses": 3, "hypothesis_min_tilt_deg": 50.0},
