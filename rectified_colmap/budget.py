@@ -109,3 +109,24 @@ def largest_scales(feats: Features, index: np.ndarray, n: int) -> np.ndarray:
     key = singular_values_2x2(feats.shapes[index])[:, 0]
     order = np.argsort(-key, kind="stable")[:n]
     return np.sort(index[order])
+
+
+def water_fill(needs: np.ndarray, weights: np.ndarray, total: float) -> np.ndarray:
+    """(n,) shares of ``total`` for n claims: min(need_i, c * weight_i) with the largest
+    common c whose shares sum to at most ``total`` (all of ``needs`` when they fit).
+    A claim that needs less than its weight's part keeps its need, and no claim can take
+    another's part, however large its need."""
+    needs = np.asarray(needs, float)
+    weights = np.asarray(weights, float)
+    if needs.sum() <= total:
+        return needs.copy()
+    ratio = np.where(weights > 0, needs / np.maximum(weights, 1e-300), np.inf)
+    order = np.argsort(ratio)
+    r, n, w = ratio[order], needs[order], weights[order]
+    # at c = r[k], claims 0..k are met: sum(n[:k+1]) + r[k] * sum(w[k+1:])
+    filled = np.cumsum(n) + r * (w.sum() - np.cumsum(w))
+    k = int(np.searchsorted(filled, total, side="right"))  # claims 0..k-1 met
+    met = n[:k].sum()
+    rest = w[k:].sum()
+    c = (total - met) / rest if rest > 0 else 0.0
+    return np.minimum(needs, c * weights)

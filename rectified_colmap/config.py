@@ -56,6 +56,13 @@ of both is 1 (area: the view has the patch's pixels), or the median larger one i
 (coarsest: nothing grows, the other direction is compressed, as ASIFT's tilt simulation)."""
 
 
+VIEW_SPLITS = ("scale", "even", "patch_area")
+"""``RectifyConf.view_split``: how the views share the image's pixel budget when their sizes
+exceed it: every view scaled by one factor (scale); or the views' pixels capped by a common
+cap (even) or by a common multiple of their patch's image area (patch_area), a view under
+its cap keeping its size (budget.water_fill)."""
+
+
 def check_view_resolution(rule: str) -> None:
     """ValueError (one line) unless ``rule`` is one of VIEW_RESOLUTIONS."""
     if rule not in VIEW_RESOLUTIONS:
@@ -74,6 +81,7 @@ class RectifyConf:
     view_resolution: str = "finest"  # finest | area | coarsest (VIEW_RESOLUTIONS above)
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
     max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
+    view_split: str = "scale"  # how views share those pixels: scale | even | patch_area
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
@@ -81,6 +89,11 @@ class RectifyConf:
 
     def __post_init__(self):
         check_view_resolution(self.view_resolution)
+        if self.view_split not in VIEW_SPLITS:
+            raise ValueError(
+                f"rectify.view_split must be one of {', '.join(VIEW_SPLITS)}, "
+                f"got {self.view_split!r}"
+            )
 
 
 @dataclass

@@ -26,6 +26,7 @@ import numpy as np
 import pycolmap
 
 from . import camera as cam_utils
+from .budget import water_fill
 from .config import RectifyConf
 from .geometry import axis_angle_rotation
 from .planes import HYPOTHESIS_AXIS, Patch
@@ -211,13 +212,26 @@ def rectifications_within_budget(
     final scale. ``turn``: views turned to their smallest box (rectify.patch_view)."""
     views = [(i, patch_view(camera, patches[i], conf, turn)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
-    scale = 1.0
+    if conf.view_split == "scale":
+        weights = None
+    elif conf.view_split == "even":
+        weights = np.ones(len(views))
+    else:  # patch_area: the patch's cells (work-grid cells of the image)
+        weights = np.array([float(v.mask.sum()) for _, v in views])
+    scales = np.ones(len(views))
     for _ in range(4):  # the borders do not scale: a few steps to fit
-        total = sum(w * h for w, h in (view_camera(v, conf, scale)[1] for _, v in views))
+        sizes = np.array(
+            [np.prod(view_camera(v, conf, s)[1]) for (_, v), s in zip(views, scales)], float
+        )
+        total = sizes.sum()
         if total <= pixel_budget:
             break
-        scale *= 0.999 * float(np.sqrt(pixel_budget / total))
-    rects = (finish_rectification(camera, v, i, conf, scale) for i, v in views)
+        if weights is None:
+            scales *= 0.999 * float(np.sqrt(pixel_budget / total))
+        else:
+            caps = water_fill(sizes, weights, 0.999 * pixel_budget)
+            scales *= np.sqrt(np.minimum(1.0, caps / sizes))
+    rects = (finish_rectification(camera, v, i, conf, s) for (i, v), s in zip(views, scales))
     return [r for r in rects if r is not None]
 
 

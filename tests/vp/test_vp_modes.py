@@ -103,6 +103,33 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
     assert errs[False] > 8.0 and errs[True] < 1.0, errs
 
 
+@pytest.mark.parametrize("split", ["even", "patch_area"])
+def test_a_large_view_takes_no_pixels_of_a_small_one(split):
+    """rectify.view_split even / patch_area: a small patch and a large, strongly oblique one
+    over the budget: the small view keeps its full size (its claim is under the common
+    cap), the large one takes the rest; scaled by one factor (scale) both shrink alike."""
+    camera = synth.pinhole_camera(W, H, 0.9 * W)
+    small = np.zeros((H // 4, W // 4), bool)
+    small[:20, :30] = True
+    frontal = Patch(small, 0, np.array([0.0, 0.0, -1.0]), float(small.mean()))
+    oblique = Patch(~small, 1, np.array([0.9, 0.0, -0.436]), float((~small).mean()))
+    free = rectifications_within_budget(
+        camera, [frontal, oblique], [0, 1], ExtractConf().rectify, 1e12
+    )
+    need = [r.size[0] * r.size[1] for r in free]
+    budget = need[0] + 0.3 * need[1]
+    conf = ExtractConf.from_dict({"rectify": {"view_split": split}}).rectify
+    views = rectifications_within_budget(camera, [frontal, oblique], [0, 1], conf, budget)
+    got = [r.size[0] * r.size[1] for r in views]
+    assert sum(got) <= budget
+    assert views[0].size == free[0].size and views[0].K[0, 0] == pytest.approx(free[0].K[0, 0])
+    assert 0.28 * need[1] < got[1] <= budget - need[0]
+    conf.view_split = "scale"
+    scaled = rectifications_within_budget(camera, [frontal, oblique], [0, 1], conf, budget)
+    ratios = [s.K[0, 0] / f.K[0, 0] for s, f in zip(scaled, free)]
+    assert ratios[0] < 0.7 and ratios[0] == pytest.approx(ratios[1], rel=1e-9)
+
+
 def test_views_share_the_pixel_budget():
     """All views of an image together stay within the pixel budget: two views of the same
     patch get half the pixels each that one alone gets, and a budget beyond the views'
