@@ -56,7 +56,7 @@ of both is 1 (area: the view has the patch's pixels), or the median larger one i
 (coarsest: nothing grows, the other direction is compressed, as ASIFT's tilt simulation)."""
 
 
-VIEW_SPLITS = ("scale", "even", "patch_area")
+VIEW_SPLITS = ("scale", "even", "patch_area", "shared")
 """``RectifyConf.view_split``: how the views share the image's pixel budget when their sizes
 exceed it: every view scaled by one factor (scale); or the views' pixels capped by a common
 cap (even) or by a common multiple of their patch's image area (patch_area), a view under

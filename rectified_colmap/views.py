@@ -216,8 +216,11 @@ def rectifications_within_budget(
         weights = None
     elif conf.view_split == "even":
         weights = np.ones(len(views))
-    else:  # patch_area: the patch's cells (work-grid cells of the image)
+    elif conf.view_split == "patch_area":  # the patch's cells (work-grid cells of the image)
         weights = np.array([float(v.mask.sum()) for _, v in views])
+    else:  # shared: each cell's claim split among the views whose patch holds it
+        count = np.maximum(sum(v.mask.astype(np.int32) for _, v in views), 1) if views else 0
+        weights = np.array([float((1.0 / count)[v.mask].sum()) for _, v in views])
     scales = np.ones(len(views))
     for _ in range(4):  # the borders do not scale: a few steps to fit
         sizes = np.array(
