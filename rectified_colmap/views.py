@@ -11,8 +11,9 @@ budget, the work-grid cells each view covers and the first view covering each ce
 - ``patches_worth_rectifying``: near-frontal patches and small ones are left to plain SIFT;
 - ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
   hypotheses' views (orientations from lines err most);
-- ``rectifications_within_budget``: every view planned, then scaled down together to the
-  image's pixel budget, a multiple of its own pixels;
+- ``rectifications_within_budget``: every view planned, then scaled down to the image's
+  pixel budget, a multiple of its own pixels: each work cell of the image buys the same
+  view pixels, shared among the views over it, so no view takes another's (``shared_cells``);
 - ``viewing_masks`` / ``viewing_coverage``: the cells each view covers.
 """
 
@@ -206,21 +207,18 @@ def rectifications_within_budget(
     pixel_budget: float,
     turn: bool = True,
 ) -> list[Rectification]:
-    """Rectifications (plan_rectification) of the given patches, scaled down together
-    when their summed size (w x h) exceeds ``pixel_budget`` (to within a view's border
-    when views are tiny). Each patch's view is computed once, and its mask only at the
-    final scale. ``turn``: views turned to their smallest box (rectify.patch_view)."""
+    """Rectifications (plan_rectification) of the given patches within ``pixel_budget``
+    (their summed sizes w x h, to within a view's border when views are tiny). When the
+    views' own sizes exceed it, they are scaled down as ``conf.view_split`` says: 'shared',
+    each view to at most a common claim per work cell of its patch, a cell held by several
+    views' patches shared among them (``shared_cells``, budget.water_fill); 'scale', all
+    by one factor. Each patch's view is computed once, and its mask only at the final
+    scale. ``turn``: views turned to their smallest box (rectify.patch_view)."""
     views = [(i, patch_view(camera, patches[i], conf, turn)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
-    if conf.view_split == "scale":
-        weights = None
-    elif conf.view_split == "even":
-        weights = np.ones(len(views))
-    elif conf.view_split == "patch_area":  # the patch's cells (work-grid cells of the image)
-        weights = np.array([float(v.mask.sum()) for _, v in views])
-    else:  # shared: each cell's claim split among the views whose patch holds it
-        count = np.maximum(sum(v.mask.astype(np.int32) for _, v in views), 1) if views else 0
-        weights = np.array([float((1.0 / count)[v.mask].sum()) for _, v in views])
+    weights = None
+    if conf.view_split == "shared" and views:
+        weights = shared_cells(np.stack([v.mask for _, v in views]))
     scales = np.ones(len(views))
     for _ in range(4):  # the borders do not scale: a few steps to fit
         sizes = np.array(
@@ -236,6 +234,14 @@ def rectifications_within_budget(
             scales *= np.sqrt(np.minimum(1.0, caps / sizes))
     rects = (finish_rectification(camera, v, i, conf, s) for (i, v), s in zip(views, scales))
     return [r for r in rects if r is not None]
+
+
+def shared_cells(masks: np.ndarray) -> np.ndarray:
+    """(n, h, w) bool work-grid masks of n views' patches -> (n,) each view's share of its
+    cells: a cell held by k of the masks counts 1 / k for each of them (the shares sum to
+    the cells held by any)."""
+    share = 1.0 / np.maximum(masks.sum(0), 1)
+    return np.array([share[m].sum() for m in masks], np.float64)
 
 
 def viewing_masks(

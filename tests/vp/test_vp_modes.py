@@ -10,7 +10,7 @@ from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.pipeline import with_vanishing_points
 from rectified_colmap.planes import Patch, detect_planes
-from rectified_colmap.views import plan_views, rectifications_within_budget
+from rectified_colmap.views import plan_views, rectifications_within_budget, shared_cells
 from tests.scenes import SINGLE_VIEW
 
 W, H = 480, 360
@@ -103,31 +103,54 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
     assert errs[False] > 8.0 and errs[True] < 1.0, errs
 
 
-@pytest.mark.parametrize("split", ["even", "patch_area"])
-def test_a_large_view_takes_no_pixels_of_a_small_one(split):
-    """rectify.view_split even / patch_area: a small patch and a large, strongly oblique one
-    over the budget: the small view keeps its full size (its claim is under the common
-    cap), the large one takes the rest; scaled by one factor (scale) both shrink alike."""
+def _oblique_views(patches, split, budget):
     camera = synth.pinhole_camera(W, H, 0.9 * W)
+    conf = ExtractConf.from_dict({"rectify": {"view_split": split}}).rectify
+    return rectifications_within_budget(camera, patches, list(range(len(patches))), conf, budget)
+
+
+def _pixels(views):
+    return np.array([r.size[0] * r.size[1] for r in views], float)
+
+
+def test_a_large_view_takes_no_pixels_of_a_small_one():
+    """rectify.view_split 'shared': a small patch and a large, strongly oblique one over the
+    budget: the small view keeps its full size (its cells' claim is more than it needs),
+    the large one takes the rest; scaled by one factor ('scale') both shrink alike."""
     small = np.zeros((H // 4, W // 4), bool)
     small[:20, :30] = True
     frontal = Patch(small, 0, np.array([0.0, 0.0, -1.0]), float(small.mean()))
     oblique = Patch(~small, 1, np.array([0.9, 0.0, -0.436]), float((~small).mean()))
-    free = rectifications_within_budget(
-        camera, [frontal, oblique], [0, 1], ExtractConf().rectify, 1e12
-    )
-    need = [r.size[0] * r.size[1] for r in free]
+    free = _oblique_views([frontal, oblique], "shared", 1e12)
+    need = _pixels(free)
     budget = need[0] + 0.3 * need[1]
-    conf = ExtractConf.from_dict({"rectify": {"view_split": split}}).rectify
-    views = rectifications_within_budget(camera, [frontal, oblique], [0, 1], conf, budget)
-    got = [r.size[0] * r.size[1] for r in views]
-    assert sum(got) <= budget
+    views = _oblique_views([frontal, oblique], "shared", budget)
+    got = _pixels(views)
+    assert got.sum() <= budget
     assert views[0].size == free[0].size and views[0].K[0, 0] == pytest.approx(free[0].K[0, 0])
     assert 0.28 * need[1] < got[1] <= budget - need[0]
-    conf.view_split = "scale"
-    scaled = rectifications_within_budget(camera, [frontal, oblique], [0, 1], conf, budget)
+    scaled = _oblique_views([frontal, oblique], "scale", budget)
     ratios = [s.K[0, 0] / f.K[0, 0] for s, f in zip(scaled, free)]
     assert ratios[0] < 0.7 and ratios[0] == pytest.approx(ratios[1], rel=1e-9)
+
+
+def test_views_over_the_same_cells_share_their_claim():
+    """Two views of one half of the image (a plane and a hypothesis over the same cells)
+    and one of the other half, all needing more than the budget: the two together get
+    what the one gets (each half of it), and the budget is spent."""
+    left = np.zeros((H // 4, W // 4), bool)
+    left[:, : W // 8] = True
+    a = Patch(left, 0, np.array([0.8, 0.0, -0.6]), 0.5)
+    b = Patch(left, 1, np.array([0.0, 0.8, -0.6]), 0.5)
+    c = Patch(~left, 2, np.array([-0.8, 0.0, -0.6]), 0.5)
+    budget = 0.2 * _pixels(_oblique_views([a, b, c], "shared", 1e12)).min()
+    got = _pixels(_oblique_views([a, b, c], "shared", budget))
+    assert got.sum() <= budget and got.sum() > 0.97 * budget
+    assert got[2] == pytest.approx(got[0] + got[1], rel=0.05)
+    assert got[0] == pytest.approx(got[1], rel=0.05)
+    np.testing.assert_allclose(
+        shared_cells(np.stack([left, left, ~left])), [left.sum() / 2, left.sum() / 2, (~left).sum()]
+    )
 
 
 def test_views_share_the_pixel_budget():
