@@ -3,7 +3,8 @@
 The rectified views of an image together have at most ``rectify.max_view_pixels_factor``
 x the image's pixels (:func:`view_pixel_budget`; pixels beyond those that SIFT's budget
 can use are not counted): a budget relative to the image, so small photos and video
-frames pay the same share as large ones.
+frames pay the same share as large ones. Views over it are cut to the largest common
+claim per work cell that fits (rectified_colmap.views.rectifications_within_budget).
 
 Plain SIFT keeps COLMAP's budget (``sift.max_num_features``: detected points, a point with
 two orientations gives two keypoints) on the whole image, exactly as COLMAP. The rectified
@@ -109,24 +110,3 @@ def largest_scales(feats: Features, index: np.ndarray, n: int) -> np.ndarray:
     key = singular_values_2x2(feats.shapes[index])[:, 0]
     order = np.argsort(-key, kind="stable")[:n]
     return np.sort(index[order])
-
-
-def water_fill(needs: np.ndarray, weights: np.ndarray, total: float) -> np.ndarray:
-    """(n,) shares of ``total`` for n claims: min(need_i, c * weight_i) with the largest
-    common c whose shares sum to at most ``total`` (all of ``needs`` when they fit).
-    A claim that needs less than its weight's part keeps its need, and no claim can take
-    another's part, however large its need."""
-    needs = np.asarray(needs, float)
-    weights = np.asarray(weights, float)
-    if needs.sum() <= total:
-        return needs.copy()
-    ratio = np.where(weights > 0, needs / np.maximum(weights, 1e-300), np.inf)
-    order = np.argsort(ratio)
-    r, n, w = ratio[order], needs[order], weights[order]
-    # at c = r[k], claims 0..k are met: sum(n[:k+1]) + r[k] * sum(w[k+1:])
-    filled = np.cumsum(n) + r * (w.sum() - np.cumsum(w))
-    k = int(np.searchsorted(filled, total, side="right"))  # claims 0..k-1 met
-    met = n[:k].sum()
-    rest = w[k:].sum()
-    c = (total - met) / rest if rest > 0 else 0.0
-    return np.minimum(needs, c * weights)

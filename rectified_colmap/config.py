@@ -56,15 +56,6 @@ of both is 1 (area: the view has the patch's pixels), or the median larger one i
 (coarsest: nothing grows, the other direction is compressed, as ASIFT's tilt simulation)."""
 
 
-VIEW_SPLITS = ("shared", "scale")
-"""``RectifyConf.view_split``: how the views share the image's pixel budget when their sizes
-exceed it. shared: every work cell of the image claims the same view pixels, its claim
-split evenly among the views whose patch holds it; a view gets at most its cells' claims
-(budget.water_fill: the largest common claim that fits), and one that needs less keeps its
-size, so no view, however large (a plane hypothesis seen at a grazing angle), takes pixels
-from another's cells. scale: every view scaled by one factor (the default until 2026-12-06)."""
-
-
 def check_view_resolution(rule: str) -> None:
     """ValueError (one line) unless ``rule`` is one of VIEW_RESOLUTIONS."""
     if rule not in VIEW_RESOLUTIONS:
@@ -82,8 +73,7 @@ class RectifyConf:
     min_texture: float = 5.0  # work cells with a lower Sobel magnitude get no view pixels
     view_resolution: str = "finest"  # finest | area | coarsest (VIEW_RESOLUTIONS above)
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
-    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
-    view_split: str = "shared"  # how views share those pixels: shared | scale (VIEW_SPLITS)
+    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (shared per cell)
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
@@ -91,11 +81,6 @@ class RectifyConf:
 
     def __post_init__(self):
         check_view_resolution(self.view_resolution)
-        if self.view_split not in VIEW_SPLITS:
-            raise ValueError(
-                f"rectify.view_split must be one of {', '.join(VIEW_SPLITS)}, "
-                f"got {self.view_split!r}"
-            )
 
 
 @dataclass

@@ -27,7 +27,6 @@ import numpy as np
 import pycolmap
 
 from . import camera as cam_utils
-from .budget import water_fill
 from .config import RectifyConf
 from .geometry import axis_angle_rotation
 from .planes import HYPOTHESIS_AXIS, Patch
@@ -209,16 +208,16 @@ def rectifications_within_budget(
 ) -> list[Rectification]:
     """Rectifications (plan_rectification) of the given patches within ``pixel_budget``
     (their summed sizes w x h, to within a view's border when views are tiny). When the
-    views' own sizes exceed it, they are scaled down as ``conf.view_split`` says: 'shared',
-    each view to at most a common claim per work cell of its patch, a cell held by several
-    views' patches shared among them (``shared_cells``, budget.water_fill); 'scale', all
-    by one factor. Each patch's view is computed once, and its mask only at the final
-    scale. ``turn``: views turned to their smallest box (rectify.patch_view)."""
+    views' own sizes exceed it, each view is scaled down to at most a common claim per work
+    cell of its patch, a cell held by several views' patches shared among them
+    (``shared_cells``, ``water_fill``): a view that needs less keeps its size, and no view,
+    however large (a plane hypothesis seen near grazing), takes another's pixels (one scale
+    for all, the rule before, let such views shrink the view of the true plane to a tenth).
+    Each patch's view is computed once, and its mask only at the final scale. ``turn``:
+    views turned to their smallest box (rectify.patch_view)."""
     views = [(i, patch_view(camera, patches[i], conf, turn)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
-    weights = None
-    if conf.view_split == "shared" and views:
-        weights = shared_cells(np.stack([v.mask for _, v in views]))
+    claims = shared_cells(np.stack([v.mask for _, v in views])) if views else None
     scales = np.ones(len(views))
     for _ in range(4):  # the borders do not scale: a few steps to fit
         sizes = np.array(
@@ -227,11 +226,8 @@ def rectifications_within_budget(
         total = sizes.sum()
         if total <= pixel_budget:
             break
-        if weights is None:
-            scales *= 0.999 * float(np.sqrt(pixel_budget / total))
-        else:
-            caps = water_fill(sizes, weights, 0.999 * pixel_budget)
-            scales *= np.sqrt(np.minimum(1.0, caps / sizes))
+        caps = water_fill(sizes, claims, 0.999 * pixel_budget)
+        scales *= np.sqrt(np.minimum(1.0, caps / sizes))
     rects = (finish_rectification(camera, v, i, conf, s) for (i, v), s in zip(views, scales))
     return [r for r in rects if r is not None]
 
@@ -242,6 +238,27 @@ def shared_cells(masks: np.ndarray) -> np.ndarray:
     the cells held by any)."""
     share = 1.0 / np.maximum(masks.sum(0), 1)
     return np.array([share[m].sum() for m in masks], np.float64)
+
+
+def water_fill(needs: np.ndarray, weights: np.ndarray, total: float) -> np.ndarray:
+    """(n,) shares of ``total`` for n claims: min(need_i, c * weight_i) with the largest
+    common c whose shares sum to at most ``total`` (all of ``needs`` when they fit).
+    A claim that needs less than its weight's part keeps its need, and no claim can take
+    another's part, however large its need."""
+    needs = np.asarray(needs, float)
+    weights = np.asarray(weights, float)
+    if needs.sum() <= total:
+        return needs.copy()
+    ratio = np.where(weights > 0, needs / np.maximum(weights, 1e-300), np.inf)
+    order = np.argsort(ratio)
+    r, n, w = ratio[order], needs[order], weights[order]
+    # at c = r[k], claims 0..k are met: sum(n[:k+1]) + r[k] * sum(w[k+1:])
+    filled = np.cumsum(n) + r * (w.sum() - np.cumsum(w))
+    k = int(np.searchsorted(filled, total, side="right"))  # claims 0..k-1 met
+    met = n[:k].sum()
+    rest = w[k:].sum()
+    c = (total - met) / rest if rest > 0 else 0.0
+    return np.minimum(needs, c * weights)
 
 
 def viewing_masks(

@@ -3,7 +3,7 @@ import pycolmap
 import pytest
 
 from rectified_colmap.config import SiftConf
-from rectified_colmap.budget import split_budget, water_fill
+from rectified_colmap.budget import split_budget
 from rectified_colmap.features import Features, keypoints_in_mask, similarity_frames
 from rectified_colmap.sift import (
     coarse_first_pays,
@@ -11,6 +11,7 @@ from rectified_colmap.sift import (
     detect_sift,
     patch_first_octave,
 )
+from rectified_colmap.views import water_fill
 from tests.conftest import textured_image
 
 
