@@ -244,7 +244,7 @@ def water_fill(needs: np.ndarray, weights: np.ndarray, total: float) -> np.ndarr
     """(n,) shares of ``total`` for n claims: min(need_i, c * weight_i) with the largest
     common c whose shares sum to at most ``total`` (all of ``needs`` when they fit).
     A claim that needs less than its weight's part keeps its need, and no claim can take
-    another's part, however large its need."""
+    another's part, however large its need (a claim of weight 0 gets nothing)."""
     needs = np.asarray(needs, float)
     weights = np.asarray(weights, float)
     if needs.sum() <= total:
@@ -253,7 +253,8 @@ def water_fill(needs: np.ndarray, weights: np.ndarray, total: float) -> np.ndarr
     order = np.argsort(ratio)
     r, n, w = ratio[order], needs[order], weights[order]
     # at c = r[k], claims 0..k are met: sum(n[:k+1]) + r[k] * sum(w[k+1:])
-    filled = np.cumsum(n) + r * (w.sum() - np.cumsum(w))
+    after = w.sum() - np.cumsum(w)
+    filled = np.cumsum(n) + np.where(after > 0, r * after, 0.0)
     k = int(np.searchsorted(filled, total, side="right"))  # claims 0..k-1 met
     met = n[:k].sum()
     rest = w[k:].sum()

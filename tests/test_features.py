@@ -91,6 +91,7 @@ def test_water_fill_is_the_largest_common_cap(seed):
     assert capped.any() and (~capped).any()
     np.testing.assert_allclose(share[capped] / weights[capped], lo, rtol=1e-9)
     np.testing.assert_array_equal(water_fill(needs, weights, 2 * needs.sum()), needs)
+    np.testing.assert_allclose(water_fill([4.0, 10.0, 10.0], [0.0, 1.0, 1.0], 10.0), [0, 5, 5])
 
 
 def test_keypoints_in_mask_uses_colmap_convention():
