@@ -11,7 +11,6 @@ from rectified_colmap.sift import (
     detect_sift,
     patch_first_octave,
 )
-from rectified_colmap.views import water_fill
 from tests.conftest import textured_image
 
 
@@ -68,30 +67,6 @@ def test_split_budget_proportional_and_bounded():
     assert b[1] == 0
     assert b[3] >= 60  # a small region still gets a minimum
     assert abs(b[2] / b[0] - 3) < 0.2
-
-
-@pytest.mark.parametrize("seed", range(5))
-def test_water_fill_is_the_largest_common_cap(seed):
-    """Shares min(need, c x weight) summing to the total, c the largest such: the same c as
-    a bisection finds; claims under their cap keep their need; nothing is given when
-    everything fits beyond the needs."""
-    rng = np.random.default_rng(seed)
-    needs = rng.uniform(1, 100, 9) ** 2
-    weights = rng.uniform(0.1, 3, 9)
-    total = 0.4 * needs.sum()
-    share = water_fill(needs, weights, total)
-    assert share.sum() == pytest.approx(total)
-    assert np.all(share <= needs + 1e-9)
-    lo, hi = 0.0, needs.max() / weights.min()
-    for _ in range(200):
-        c = 0.5 * (lo + hi)
-        lo, hi = (c, hi) if np.minimum(needs, c * weights).sum() < total else (lo, c)
-    np.testing.assert_allclose(share, np.minimum(needs, lo * weights), rtol=1e-9)
-    capped = share < needs
-    assert capped.any() and (~capped).any()
-    np.testing.assert_allclose(share[capped] / weights[capped], lo, rtol=1e-9)
-    np.testing.assert_array_equal(water_fill(needs, weights, 2 * needs.sum()), needs)
-    np.testing.assert_allclose(water_fill([4.0, 10.0, 10.0], [0.0, 1.0, 1.0], 10.0), [0, 5, 5])
 
 
 def test_keypoints_in_mask_uses_colmap_convention():

@@ -10,7 +10,12 @@ from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.config import ExtractConf
 from rectified_colmap.pipeline import with_vanishing_points
 from rectified_colmap.planes import Patch, detect_planes
-from rectified_colmap.views import plan_views, rectifications_within_budget, shared_cells
+from rectified_colmap.views import (
+    plan_views,
+    rectifications_within_budget,
+    shared_cells,
+    water_fill,
+)
 from tests.scenes import SINGLE_VIEW
 
 W, H = 480, 360
@@ -101,6 +106,30 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
         assert e
         errs[enabled] = np.median(e)
     assert errs[False] > 8.0 and errs[True] < 1.0, errs
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_water_fill_is_the_largest_common_cap(seed):
+    """Shares min(need, c x weight) summing to the total, c the largest such: the same c as
+    a bisection finds; claims under their cap keep their need; nothing is given when
+    everything fits beyond the needs."""
+    rng = np.random.default_rng(seed)
+    needs = rng.uniform(1, 100, 9) ** 2
+    weights = rng.uniform(0.1, 3, 9)
+    total = 0.4 * needs.sum()
+    share = water_fill(needs, weights, total)
+    assert share.sum() == pytest.approx(total)
+    assert np.all(share <= needs + 1e-9)
+    lo, hi = 0.0, needs.max() / weights.min()
+    for _ in range(200):
+        c = 0.5 * (lo + hi)
+        lo, hi = (c, hi) if np.minimum(needs, c * weights).sum() < total else (lo, c)
+    np.testing.assert_allclose(share, np.minimum(needs, lo * weights), rtol=1e-9)
+    capped = share < needs
+    assert capped.any() and (~capped).any()
+    np.testing.assert_allclose(share[capped] / weights[capped], lo, rtol=1e-9)
+    np.testing.assert_array_equal(water_fill(needs, weights, 2 * needs.sum()), needs)
+    np.testing.assert_allclose(water_fill([4.0, 10.0, 10.0], [0.0, 1.0, 1.0], 10.0), [0, 5, 5])
 
 
 def _oblique_views(patches, budget):
