@@ -73,7 +73,7 @@ class RectifyConf:
     min_texture: float = 5.0  # work cells with a lower Sobel magnitude get no view pixels
     view_resolution: str = "finest"  # finest | area | coarsest (VIEW_RESOLUTIONS above)
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
-    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (shared per cell)
+    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)

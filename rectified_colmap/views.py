@@ -211,9 +211,8 @@ def rectifications_within_budget(
     views' own sizes exceed it, each view is scaled down to at most a common claim per work
     cell of its patch, a cell held by several views' patches shared among them
     (``shared_cells``, ``water_fill``): a view that needs less keeps its size, and no view,
-    however large (a plane hypothesis seen near grazing), takes another's pixels (one scale
-    for all, the rule before, let such views shrink the view of the true plane to a tenth).
-    Each patch's view is computed once, and its mask only at the final scale. ``turn``:
+    however large (a plane hypothesis seen near grazing), takes another's pixels. Each
+    patch's view is computed once, and its mask only at the final scale. ``turn``:
     views turned to their smallest box (rectify.patch_view)."""
     views = [(i, patch_view(camera, patches[i], conf, turn)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
