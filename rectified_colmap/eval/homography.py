@@ -156,8 +156,8 @@ def read_homography_pairs(
             raise ValueError(f"{path}: pair {k}: convention must be opencv or colmap")
         if conv == "opencv":
             H = colmap_homography_from_opencv(H)
-        H = positive_homography(H, it.get("size0"))
         where = f"{path}: pair {k}"
+        H = positive_homography(H, it.get("size0"), _region_points0(it, H, conv, where))
         sizes = [
             _pair_size(it, key, im, image_root, where)
             for key, im in (("size0", im0), ("size1", im1))
@@ -212,12 +212,35 @@ def _pair_regions(item: dict, H: np.ndarray, conv: str, where: str):
     return region0, region1
 
 
-def positive_homography(H: np.ndarray, size0=None) -> np.ndarray:
-    """H up to scale, with the sign that maps the centre of image 0 (W, H = ``size0``; else
-    the origin) to w > 0: a homography's scale includes its sign, and points map behind the
-    camera (w <= 0) only for the sign that says so."""
+def positive_homography(H: np.ndarray, size0=None, points0: np.ndarray | None = None) -> np.ndarray:
+    """H up to scale, with the sign under which the plane's points in front of both cameras
+    map to w > 0: a homography's scale includes its sign, and points map behind the camera
+    (w <= 0) only for the sign that says so. The sign is taken from ``points0`` ((N, 2)
+    image-0 points known to show the plane in both images, e.g. a pair's region: most of
+    them must map to w > 0), else from the centre of image 0 (W, H = ``size0``; else the
+    origin), which is right only where that centre sees the plane in front of camera 1 (at
+    extreme tilts it may lie beyond the plane's horizon)."""
+    if points0 is not None and len(points0):
+        w = np.c_[points0, np.ones(len(points0))] @ H[2]
+        return -H if np.sum(np.sign(w)) < 0 else H
     c = np.array([size0[0] / 2, size0[1] / 2, 1.0]) if size0 is not None else np.eye(3)[2]
     return -H if (H @ c)[2] < 0 else H
+
+
+def _region_points0(item: dict, H: np.ndarray, conv: str, where: str) -> np.ndarray | None:
+    """(N, 2) image-0 points of a pair file's region (COLMAP pixels) for the sign of H: the
+    vertices of ``region0``, or those of ``region1`` mapped back through H (a point's
+    position does not depend on the sign; under the wrong one, H maps it back to w < 0);
+    None without a region."""
+    if "region0" in item:
+        return np.concatenate(_read_region(item["region0"], None, conv, where))
+    if "region1" in item:
+        x1 = np.concatenate(_read_region(item["region1"], None, conv, where))
+        p = np.c_[x1, np.ones(len(x1))] @ np.linalg.inv(H).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x0 = p[:, :2] / p[:, 2:]
+        return x0[np.isfinite(x0).all(1)]
+    return None
 
 
 def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -445,6 +468,8 @@ def plane_normals_from_homography(
         score = np.mean(front0 & front1)
         if score > best_score:
             best, best_score = (n, R), score
+    if best is None:
+        raise ValueError("no image-0 point on the plane to orient the homography's decomposition")
     n, R = best
     n0 = -n / np.linalg.norm(n)  # ours: facing the camera
     n1 = R @ n0

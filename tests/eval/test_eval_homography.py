@@ -74,6 +74,48 @@ def test_sign_of_the_file_homography_does_not_matter(tmp_path):
     assert np.isfinite(apply_homography(p.H, x)).all()
 
 
+@pytest.mark.parametrize("region_key", ["region0", "region1"])
+@pytest.mark.parametrize("file_sign", [1.0, -1.0])
+def test_sign_from_the_region_where_the_centre_sees_the_plane_behind_camera_1(
+    tmp_path, region_key, file_sign
+):
+    # Two cameras facing each other over a ground plane (camera 0's frame: the plane
+    # n . X = d): image 0's centre sees the plane 20 m away, 12 m behind camera 1, so the
+    # centre maps to w < 0 and cannot set the sign; the region (the ground 2-6 m ahead,
+    # in front of both) must.
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    a = np.deg2rad(3.0)
+    n, d = np.array([0.0, np.cos(a), np.sin(a)]), 20 * np.sin(a)
+    R, t = np.diag([-1.0, 1.0, -1.0]), np.array([0.0, 0.0, 8.0])  # camera 1 at z = 8, facing back
+    H = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)  # w = depth in camera 1 / in camera 0
+
+    def row(z):  # the image-0 row (COLMAP) that sees the ground at depth z
+        return 240 + 500 * (d / z - np.sin(a)) / np.cos(a)
+
+    region0 = np.array([[220.0, row(6)], [420, row(6)], [420, row(2)], [220, row(2)]])
+    centre = np.array([[320.0, 240.0]])
+    assert (np.c_[centre, [1.0]] @ H[2])[0] < 0  # the centre rule would flip the sign
+    assert (np.c_[region0, np.ones(4)] @ H[2] > 0).all()
+    region = region0 if region_key == "region0" else apply_homography(H, region0)
+    item = {
+        "im0": "a",
+        "im1": "b",
+        "H": (file_sign * H / H[2, 2]).tolist(),
+        "convention": "colmap",
+        "size0": [640, 480],
+        "size1": [640, 480],
+        region_key: [region.tolist()],
+    }
+    f = tmp_path / "pairs.json"
+    f.write_text(json.dumps([item]))
+    (p,) = read_homography_pairs(f)
+    np.testing.assert_allclose(p.H, H / abs(H[2, 2]), rtol=1e-9)
+    np.testing.assert_allclose(p.region0[0], region0, atol=1e-6)
+    g = visible_grid(p, 20)
+    assert len(g) > 50  # with the centre's sign, no point of the region was visible
+    assert homography_errors(p.H, p)[1] == 0.0  # the corners: some lie beyond the horizon
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_plane_normals_from_homography_recover_the_truth(seed):
     rng = np.random.default_rng(seed)
