@@ -297,7 +297,8 @@ def estimate_homography(
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """RANSAC homography between COLMAP pixel frames from (N, 2) matched points ->
     (H or None, (N,) bool inliers). OpenCV's RANSAC is run in COLMAP coordinates directly:
-    a homography between the same frames, so no conversion is needed."""
+    a homography between the same frames, so no conversion is needed. H's sign is the one
+    under which its inliers map to w > 0 (positive_homography), as the ground truth's."""
     if len(x0) < 4:
         return None, np.zeros(len(x0), bool)
     cv2.setRNGSeed(0)
@@ -311,7 +312,10 @@ def estimate_homography(
     )
     if H is None or not np.isfinite(H).all():
         return None, np.zeros(len(x0), bool)
-    return H, inl.ravel().astype(bool)
+    inl = inl.ravel().astype(bool)
+    # OpenCV's H[2, 2] = 1 takes the sign by image 0's origin, which at extreme tilts sees
+    # the plane behind camera 1: the inliers, seen by both cameras, set it instead.
+    return positive_homography(H, points0=x0[inl]), inl
 
 
 def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf) -> dict:

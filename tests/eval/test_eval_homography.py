@@ -11,6 +11,7 @@ from rectified_colmap.eval.homography import (
     HomographyPair,
     apply_homography,
     colmap_homography_from_opencv,
+    estimate_homography,
     evaluate_homography_pairs,
     homography_errors,
     plane_normals_from_homography,
@@ -74,28 +75,33 @@ def test_sign_of_the_file_homography_does_not_matter(tmp_path):
     assert np.isfinite(apply_homography(p.H, x)).all()
 
 
-@pytest.mark.parametrize("region_key", ["region0", "region1"])
-@pytest.mark.parametrize("file_sign", [1.0, -1.0])
-def test_sign_from_the_region_where_the_centre_sees_the_plane_behind_camera_1(
-    tmp_path, region_key, file_sign
-):
-    # Two cameras facing each other over a ground plane (camera 0's frame: the plane
-    # n . X = d): image 0's centre sees the plane 20 m away, 12 m behind camera 1, so the
-    # centre maps to w < 0 and cannot set the sign; the region (the ground 2-6 m ahead,
-    # in front of both) must.
+def facing_cameras_over_ground():
+    """(H, region0): two cameras facing each other over a ground plane (camera 0's frame:
+    the plane n . X = d), H with w = depth in camera 1 / depth in camera 0. Image 0's centre
+    and origin see the plane 20 m and more away, behind camera 1 (8 m ahead, facing back),
+    so they map to w < 0; region0 (the ground 2-6 m ahead) is in front of both."""
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     a = np.deg2rad(3.0)
     n, d = np.array([0.0, np.cos(a), np.sin(a)]), 20 * np.sin(a)
-    R, t = np.diag([-1.0, 1.0, -1.0]), np.array([0.0, 0.0, 8.0])  # camera 1 at z = 8, facing back
-    H = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)  # w = depth in camera 1 / in camera 0
+    R, t = np.diag([-1.0, 1.0, -1.0]), np.array([0.0, 0.0, 8.0])
+    H = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)
 
     def row(z):  # the image-0 row (COLMAP) that sees the ground at depth z
         return 240 + 500 * (d / z - np.sin(a)) / np.cos(a)
 
     region0 = np.array([[220.0, row(6)], [420, row(6)], [420, row(2)], [220, row(2)]])
-    centre = np.array([[320.0, 240.0]])
-    assert (np.c_[centre, [1.0]] @ H[2])[0] < 0  # the centre rule would flip the sign
+    assert (np.array([[320.0, 240, 1], [0, 0, 1]]) @ H[2] < 0).all()  # centre, origin
     assert (np.c_[region0, np.ones(4)] @ H[2] > 0).all()
+    return H, region0
+
+
+@pytest.mark.parametrize("region_key", ["region0", "region1"])
+@pytest.mark.parametrize("file_sign", [1.0, -1.0])
+def test_sign_from_the_region_where_the_centre_sees_the_plane_behind_camera_1(
+    tmp_path, region_key, file_sign
+):
+    # the centre maps to w < 0 and cannot set the sign; the region must
+    H, region0 = facing_cameras_over_ground()
     region = region0 if region_key == "region0" else apply_homography(H, region0)
     item = {
         "im0": "a",
@@ -114,6 +120,25 @@ def test_sign_from_the_region_where_the_centre_sees_the_plane_behind_camera_1(
     g = visible_grid(p, 20)
     assert len(g) > 50  # with the centre's sign, no point of the region was visible
     assert homography_errors(p.H, p)[1] == 0.0  # the corners: some lie beyond the horizon
+
+
+def test_an_exact_estimate_is_solved_where_image_0s_origin_sees_the_plane_behind_camera_1():
+    # OpenCV's estimate has H[2, 2] = 1: w > 0 at image 0's origin, the wrong sign here, so
+    # every visible point mapped behind camera 1 and a perfect estimate failed.
+    H, region0 = facing_cameras_over_ground()
+    pair = HomographyPair("p", "a", "b", H, (640, 480), (640, 480), [region0], None)
+    rng = np.random.default_rng(0)
+    lo, hi = region0.min(0), region0.max(0)
+    x0 = lo + (hi - lo) * rng.random((200, 2))
+    x1 = apply_homography(H, x0)
+    x1[:40] += rng.uniform(30, 60, (40, 2))  # outliers
+    H_est, inl = estimate_homography(x0, x1, HomographyConf())
+    assert inl[40:].all() and not inl[:40].any()
+    np.testing.assert_allclose(H_est / H_est[2, 2], H / H[2, 2], rtol=1e-6, atol=1e-6)
+    assert (np.c_[x0[inl], np.ones(inl.sum())] @ H_est[2] > 0).all()
+    assert homography_errors(H_est, pair)[1] < 1e-3  # px
+    H_rev, _ = estimate_homography(x1, x0, HomographyConf())  # image 1 -> image 0
+    assert homography_errors(H_rev, pair.reverse())[1] < 1e-3
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
