@@ -157,12 +157,11 @@ def read_homography_pairs(
         if conv == "opencv":
             H = colmap_homography_from_opencv(H)
         where = f"{path}: pair {k}"
-        H = positive_homography(H, it.get("size0"), _region_points0(it, H, conv, where))
         sizes = [
             _pair_size(it, key, im, image_root, where)
             for key, im in (("size0", im0), ("size1", im1))
         ]
-        region0, region1 = _pair_regions(it, H, conv, where)
+        H, region0, region1 = _pair_regions(it, H, conv, where)
         known = {"pair", "im0", "im1", "H", "size0", "size1", "convention", "region0", "region1"}
         out.append(
             HomographyPair(
@@ -194,13 +193,21 @@ def _pair_size(item: dict, key: str, name: str, image_root, where: str) -> tuple
 
 
 def _pair_regions(item: dict, H: np.ndarray, conv: str, where: str):
-    """(region0, region1) of a pair file's entry: each as given, the missing one mapped
-    from the other through H (None, None without a region)."""
+    """(H, region0, region1) of a pair file's entry: H with the sign positive_homography
+    takes from the region the entry gives (region0's vertices; or region1's, whose sign
+    through H^-1 is H's), else from image 0's centre; each region as given, the missing one
+    mapped from the other through H (None, None without a region)."""
     region0 = region1 = None
     if "region0" in item:
         region0 = _read_region(item["region0"], None, conv, where)
     if "region1" in item:
         region1 = _read_region(item["region1"], None, conv, where)
+    if region0 is not None:
+        H = positive_homography(H, points0=np.concatenate(region0))
+    elif region1 is not None:
+        H = np.linalg.inv(positive_homography(np.linalg.inv(H), points0=np.concatenate(region1)))
+    else:
+        H = positive_homography(H, item.get("size0"))
     if region0 is not None and region1 is None:
         region1 = [apply_homography(H, p) for p in region0]
         if not all(np.isfinite(p).all() for p in region1):
@@ -209,7 +216,7 @@ def _pair_regions(item: dict, H: np.ndarray, conv: str, where: str):
         region0 = [apply_homography(np.linalg.inv(H), p) for p in region1]
         if not all(np.isfinite(p).all() for p in region0):
             raise ValueError(f"{where}: region1 maps behind camera 0; give region0")
-    return region0, region1
+    return H, region0, region1
 
 
 def positive_homography(H: np.ndarray, size0=None, points0: np.ndarray | None = None) -> np.ndarray:
@@ -225,22 +232,6 @@ def positive_homography(H: np.ndarray, size0=None, points0: np.ndarray | None = 
         return -H if np.sum(np.sign(w)) < 0 else H
     c = np.array([size0[0] / 2, size0[1] / 2, 1.0]) if size0 is not None else np.eye(3)[2]
     return -H if (H @ c)[2] < 0 else H
-
-
-def _region_points0(item: dict, H: np.ndarray, conv: str, where: str) -> np.ndarray | None:
-    """(N, 2) image-0 points of a pair file's region (COLMAP pixels) for the sign of H: the
-    vertices of ``region0``, or those of ``region1`` mapped back through H (a point's
-    position does not depend on the sign; under the wrong one, H maps it back to w < 0);
-    None without a region."""
-    if "region0" in item:
-        return np.concatenate(_read_region(item["region0"], None, conv, where))
-    if "region1" in item:
-        x1 = np.concatenate(_read_region(item["region1"], None, conv, where))
-        p = np.c_[x1, np.ones(len(x1))] @ np.linalg.inv(H).T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x0 = p[:, :2] / p[:, 2:]
-        return x0[np.isfinite(x0).all(1)]
-    return None
 
 
 def apply_homography(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
