@@ -25,6 +25,7 @@ import numpy as np
 import pycolmap
 
 from .config import SiftConf
+from .conventions import from_opencv_points
 from .features import Features, keypoints_in_mask, similarity_frames
 from .geometry import scaled_size
 from .rectify import (
@@ -110,6 +111,54 @@ class Sift:
             return np.zeros((0, 4)), np.zeros((0, 128), np.uint8)
         m = np.asarray(pycolmap.keypoints_to_matrix(kps), dtype=np.float64)
         return m, np.ascontiguousarray(desc.data, dtype=np.uint8)
+
+
+def opencv_sift(image: np.ndarray, conf: SiftConf, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's SIFT on a contiguous (h, w) uint8 image, as COLMAP's with first octave -1
+    would give it: ((N, 4) float64 [x, y, scale, orientation] in COLMAP convention, (N, 128)
+    uint8 descriptors in COLMAP's RootSIFT byte scale).
+
+    With precise upscaling (pixel x at 2x, as VLFeat's) the keypoints are COLMAP's (on
+    photos the median distance to the nearest COLMAP keypoint is 2e-4 px, scale = OpenCV's
+    size / 2, orientation = its angle in radians; docs/architecture.md), and the descriptors
+    differ only in normalization: OpenCV's are L2-normalized, COLMAP's L1-normalized, square
+    rooted and x 512 (cosine 0.997 to COLMAP's at the same keypoint). The thresholds are
+    COLMAP's: OpenCV's contrast threshold is divided by its 3 levels per octave, VLFeat's
+    peak threshold is not. Budget as COLMAP's ``max_num_features``: the ``n`` detected points
+    of largest scale (a point is its rows with equal x, y, scale), at most
+    ``conf.max_num_orientations`` rows each. OpenCV's threads are the caller's (the CLI's
+    workers run one: extraction.run.Worker)."""
+    detector = cv2.SIFT_create(
+        0, 3, 3.0 * conf.peak_threshold, conf.edge_threshold, 1.6, cv2.CV_32F, True
+    )
+    kps, desc = detector.detectAndCompute(image, None)
+    if len(kps) == 0 or desc is None:
+        return np.zeros((0, 4)), np.zeros((0, 128), np.uint8)
+    m = np.array([(*k.pt, k.size, k.angle) for k in kps], dtype=np.float64)
+    m[:, :2] = from_opencv_points(m[:, :2])
+    m[:, 2] /= 2.0
+    m[:, 3] = np.deg2rad(m[:, 3])
+    num_points, point, rank = _points_and_ranks(m[:, :3])
+    point_scale = np.zeros(num_points)
+    point_scale[point] = m[:, 2]
+    chosen = np.argsort(-point_scale, kind="stable")[: max(0, n)]  # largest scales
+    keep = (rank < conf.max_num_orientations) & np.isin(point, chosen)
+    root = np.sqrt(desc[keep] / np.maximum(desc[keep].sum(1, keepdims=True), 1e-12))
+    return m[keep], np.minimum(np.round(512.0 * root), 255).astype(np.uint8)
+
+
+def _points_and_ranks(xys: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """Rows of (N, 3) [x, y, scale] grouped into points (equal rows): (number of points,
+    (N,) point index, (N,) rank of the row within its point in input order)."""
+    _, point = np.unique(xys, axis=0, return_inverse=True)
+    point = point.ravel()
+    order = np.argsort(point, kind="stable")
+    sorted_point = point[order]
+    starts = np.r_[0, np.flatnonzero(sorted_point[1:] != sorted_point[:-1]) + 1]
+    run_start = np.repeat(starts, np.diff(np.r_[starts, len(point)]))
+    rank = np.empty(len(point), np.int64)
+    rank[order] = np.arange(len(point)) - run_start
+    return len(starts), point, rank
 
 
 def count_detections(m: np.ndarray) -> int:
@@ -269,6 +318,35 @@ def warp_upsampling(size: tuple[int, int], budget: int, first_octave: int, conf:
     return up
 
 
+def opencv_views(shape: tuple[int, int], conf: SiftConf) -> bool:
+    """Whether OpenCV's SIFT runs the views of an image of ``shape`` (h, w) (their pixels:
+    ``rectify.opencv_view_pixels_factor`` x the image's): ``sift.patch_backend`` "opencv"
+    where the views' SIFT starts at the upsampled octave in one call (below
+    ``sift.patch_octave0_pixels_per_feature`` pixels per feature, where coarse-first does not
+    pay; ``opencv_view`` decides per view; budget.view_pixel_budget)."""
+    n = conf.max_num_features
+    return (
+        conf.patch_backend == "opencv"
+        and not conf.upright
+        and patch_first_octave(shape, n, conf) == -1
+        and not coarse_first_pays(shape, n, conf)
+    )
+
+
+def opencv_view(image_shape: tuple[int, int], size: tuple[int, int], conf: SiftConf) -> bool:
+    """Whether a view of ``size`` (w, h) of an image of ``image_shape`` (h, w) takes OpenCV's
+    SIFT (``opencv_sift``): every view of an image where ``opencv_views`` (also those whose
+    coarser octaves would fill their budget: there OpenCV's whole scale space costs about
+    what COLMAP's coarse-first does, so the image's views cost what their pixels say), unless
+    it is larger than ``conf.max_image_size``."""
+    w, h = size
+    return (
+        opencv_views(image_shape, conf)
+        and max(w, h) <= conf.max_image_size
+        and min(w, h) >= MIN_SIFT_SIDE
+    )
+
+
 def rectified_features(
     gray: np.ndarray,
     camera: pycolmap.Camera,
@@ -287,19 +365,28 @@ def rectified_features(
     A negative first octave (small images) is taken in the warp (``warp_upsampling``): the
     view warped from the image that much finer, SIFT from octave 0 there. The same scale
     space and cost as SIFT upsampling the planned view, but where the pixel budget shrank
-    the view below the image's resolution the finer octave holds the image's detail."""
+    the view below the image's resolution the finer octave holds the image's detail.
+    Except where ``opencv_view``: the view at its planned size, OpenCV's SIFT from its
+    upsampled octave (``opencv_sift``)."""
     first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
-    up = warp_upsampling(rect.size, budget, first_octave, conf)
-    patch_img = warp_to_rectified(gray, camera, upsampled_rectification(rect, up))
-    feats = detect_sift(
-        patch_img,
-        conf,
-        budget,
-        first_octave if up == 1 else 0,
-        coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
-        slot="patch",
-        sift=sift,
-    )
+    if opencv_view(gray.shape, rect.size, conf):
+        patch_img = warp_to_rectified(gray, camera, rect)
+        m, desc = opencv_sift(patch_img, conf, budget)
+        frames = similarity_frames(m[:, 2], m[:, 3])
+        feats = Features(m[:, :2], frames, desc, np.full(len(m), -1, np.int32))
+        up = 1
+    else:
+        up = warp_upsampling(rect.size, budget, first_octave, conf)
+        patch_img = warp_to_rectified(gray, camera, upsampled_rectification(rect, up))
+        feats = detect_sift(
+            patch_img,
+            conf,
+            budget,
+            first_octave if up == 1 else 0,
+            coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
+            slot="patch",
+            sift=sift,
+        )
     if up > 1 and len(feats):  # back to the planned view's pixels (a plain multiplication)
         feats = Features(feats.keypoints / up, feats.shapes / up, feats.descriptors, feats.patch)
     if len(feats) == 0:

@@ -12,7 +12,8 @@ from rectified_colmap.budget import (
     rectified_room,
     view_pixel_budget,
 )
-from rectified_colmap.config import DedupConf, ExtractConf
+from rectified_colmap.config import DedupConf, ExtractConf, merge_conf
+from rectified_colmap.sift import opencv_views
 from rectified_colmap.dedup import (
     duplicate_fraction,
     duplicate_pairs,
@@ -298,18 +299,44 @@ def test_view_pixel_budget_is_relative_to_the_image_up_to_what_sift_can_use():
     conf = ExtractConf.from_dict(
         {
             "rectify": {"max_view_pixels_factor": 2.0},
-            "sift": {"max_num_features": 8192, "patch_octave0_pixels_per_feature": 150.0},
+            "sift": {
+                "max_num_features": 8192,
+                "patch_octave0_pixels_per_feature": 150.0,
+                "patch_backend": "colmap",
+            },
         }
     )
     assert view_pixel_budget((480, 640), conf) == 2.0 * 640 * 480
     assert view_pixel_budget((1000, 1000), conf) == 2.0 * 1000 * 1000
     assert view_pixel_budget((1024, 1536), conf) == 2.0 * 8192 * 150  # 1.57 MP > 1.23 MP
     assert view_pixel_budget((4000, 6000), conf) == 2.0 * 8192 * 150
-    fewer = ExtractConf.from_dict({"sift": {"max_num_features": 1024}})
+    fewer = ExtractConf.from_dict({"sift": {"max_num_features": 1024, "patch_backend": "colmap"}})
     assert view_pixel_budget((480, 640), fewer) == pytest.approx(
         fewer.rectify.max_view_pixels_factor * 1024 * fewer.sift.patch_octave0_pixels_per_feature
     )
     downscaled = ExtractConf.from_dict({"sift": {"max_image_size": 640}})
     assert view_pixel_budget((1024, 1536), downscaled) == pytest.approx(
-        downscaled.rectify.max_view_pixels_factor * 640 * 427
+        downscaled.rectify.opencv_view_pixels_factor * 640 * 427  # 33 px / feature
     )
+
+
+def test_views_run_by_opencv_sift_get_their_own_pixel_factor():
+    """Where OpenCV's SIFT runs the views (sift.patch_backend "opencv", views from the
+    upsampled octave: below sift.patch_octave0_pixels_per_feature pixels per feature) they
+    have rectify.opencv_view_pixels_factor x the image's pixels; elsewhere, and with COLMAP's
+    SIFT or upright SIFT, rectify.max_view_pixels_factor x."""
+    conf = ExtractConf.from_dict(
+        {
+            "rectify": {"max_view_pixels_factor": 2.0, "opencv_view_pixels_factor": 5.0},
+            "sift": {"max_num_features": 8192, "patch_backend": "opencv"},
+        }
+    )
+    assert opencv_views((480, 640), conf.sift)
+    assert view_pixel_budget((480, 640), conf) == 5.0 * 640 * 480
+    assert not opencv_views((1024, 1536), conf.sift)  # 192 px per feature: octave 0
+    assert view_pixel_budget((1024, 1536), conf) == 2.0 * 8192 * 150
+    assert not opencv_views((4000, 6000), conf.sift)  # coarse-first pays
+    for other in ({"patch_backend": "colmap"}, {"upright": True}):
+        off = ExtractConf.from_dict(merge_conf(conf.to_dict(), {"sift": other}))
+        assert not opencv_views((480, 640), off.sift)
+        assert view_pixel_budget((480, 640), off) == 2.0 * 640 * 480

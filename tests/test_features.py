@@ -8,6 +8,7 @@ from rectified_colmap.features import Features, keypoints_in_mask, similarity_fr
 from rectified_colmap.sift import (
     coarse_first_pays,
     count_detections,
+    opencv_sift,
     detect_sift,
     patch_first_octave,
 )
@@ -231,3 +232,43 @@ def test_count_detections_counts_points_not_orientations():
     m = np.array([[1, 2, 3, 0.1], [1, 2, 3, 0.5], [1, 2, 4, 0.1], [5, 2, 4, 0.1]], float)
     assert count_detections(m) == 3
     assert count_detections(np.zeros((0, 4))) == 0
+
+
+def test_opencv_sift_is_colmap_sift_from_the_upsampled_octave():
+    """OpenCV's SIFT with precise upscaling (sift.opencv_sift, the views' backend "opencv")
+    finds COLMAP's keypoints (first octave -1) at the same position and scale, with the same
+    descriptor in COLMAP's RootSIFT byte scale where the orientation agrees."""
+    img = textured_image(300, 400, 5)
+    ref, ref_desc = _sift_matrix(img, 10**6)
+    m, desc = opencv_sift(img, SiftConf(), 10**6)
+    assert desc.dtype == np.uint8 and desc.shape == (len(m), 128)
+    at = np.linalg.norm(ref[:, None, :2] - m[None, :, :2], axis=2) < 0.01
+    at &= np.abs(m[None, :, 2] / ref[:, None, 2] - 1) < 1e-3
+    same = at.any(1)
+    assert same.mean() > 0.7, same.mean()
+    turn = np.abs(np.angle(np.exp(1j * (m[None, :, 3] - ref[:, None, 3]))))
+    j = np.where(at, turn, np.inf).argmin(1)  # of the same point, the closest orientation
+    both = same & (turn[np.arange(len(ref)), j] < np.deg2rad(2.0))
+    assert both.sum() > 0.3 * len(ref)
+    a = ref_desc[both].astype(float)
+    b = desc[j[both]].astype(float)
+    cosine = (a * b).sum(1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    assert np.median(cosine) > 0.98, np.median(cosine)
+    # COLMAP's byte scale: the square root of an L1-normalized histogram, x 512
+    np.testing.assert_allclose(((desc.astype(float) / 512) ** 2).sum(1), 1.0, atol=0.05)
+
+
+def test_opencv_sift_budget_keeps_the_largest_points_and_two_orientations():
+    img = textured_image(300, 400, 5)
+    conf = SiftConf()
+    full, _ = opencv_sift(img, conf, 10**6)
+    assert count_detections(full) > 300
+    for n in (50, 300):
+        part, desc = opencv_sift(img, conf, n)
+        assert len(desc) == len(part)
+        points, counts = np.unique(part[:, :3], axis=0, return_counts=True)
+        assert len(points) == n and counts.max() <= conf.max_num_orientations
+        dropped = ~(full[:, None, :3] == points[None]).all(2).any(1)
+        assert part[:, 2].min() >= full[dropped, 2].max()
+    one, _ = opencv_sift(img, SiftConf(max_num_orientations=1), 10**6)
+    assert len(np.unique(one[:, :3], axis=0)) == len(one) == count_detections(full)
