@@ -73,9 +73,8 @@ class RectifyConf:
     min_texture: float = 5.0  # work cells with a lower Sobel magnitude get no view pixels
     view_resolution: str = "finest"  # finest | area | coarsest (VIEW_RESOLUTIONS above)
     max_patch_side: int = 2048  # cap on a rectified view's side (pixels)
-    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it)
-    opencv_view_pixels_factor: float = 6.0  # the same where OpenCV's SIFT runs the views
-    # (budget.opencv_views: sift.patch_backend "opencv", views from the upsampled octave)
+    max_view_pixels_factor: float = 2.0  # all views' pixels / the image's (as SIFT sees it;
+    # budget.OPENCV_VIEW_PIXELS_RATIO x where OpenCV's SIFT runs the views)
     border: int = 6  # features closer than this to a view's border are dropped (pixels)
     tilt_steps: int = 1  # tilt neighbours per side of an oblique view (0: none)
     tilt_factor: float = 2**0.5  # ratio of neighbouring tilts (ASIFT's step)
@@ -99,10 +98,11 @@ class DedupConf:
 
 
 PATCH_BACKENDS = ("colmap", "opencv")
-"""``SiftConf.patch_backend``: SIFT in rectified views whose scale space starts at the
-upsampled octave (first octave -1, no coarse-first): COLMAP's through pycolmap, or OpenCV's
-with precise upscaling (sift.opencv_sift: the same keypoints and, in COLMAP's RootSIFT byte
-scale, the same descriptors, ~2.5x faster on one core). Plain SIFT is COLMAP's always."""
+"""``SiftConf.patch_backend``: SIFT in the rectified views of images whose views start at
+the upsampled octave (sift.opencv_views: small images): COLMAP's through pycolmap, or
+OpenCV's with precise upscaling (sift.opencv_sift: the same keypoints and, in COLMAP's
+RootSIFT byte scale, the same descriptors, ~2.5x faster on one core; the views then get
+budget.OPENCV_VIEW_PIXELS_RATIO x the pixels). Plain SIFT is COLMAP's always."""
 
 
 @dataclass
@@ -117,8 +117,6 @@ class SiftConf:
     upright: bool = False
     max_image_size: int = 3200  # ...to here (larger images are downscaled, as COLMAP)
     patch_first_octave: int = -1  # first octave in rectified views
-    patch_upsample_in_warp: bool = True  # a negative first octave: the view is warped at its
-    # resolution (2x at -1) and SIFT starts at octave 0 there (sift.rectified_features)
     patch_octave0_pixels_per_feature: float = 150.0  # from here views start at octave 0; and the
     # pixels the views budget counts: this x max_num_features (budget.view_pixel_budget)
     coarse_first: bool = True  # large images: coarse octaves first (features.detect_sift)
@@ -248,11 +246,7 @@ confs: dict[str, dict[str, Any]] = {
     "rectsift-fast": {
         "normals": {"work_max_size": 480},
         "vp": {"line_hypotheses": 1},
-        "rectify": {
-            "tilt_steps": 0,
-            "max_view_pixels_factor": 1.0,
-            "opencv_view_pixels_factor": 3.0,
-        },
+        "rectify": {"tilt_steps": 0, "max_view_pixels_factor": 1.0},
         "sift": {"max_num_features": 4096},
     },
     # exactly plain COLMAP SIFT, whatever the depth: no patch can pass, no vanishing points
@@ -275,6 +269,8 @@ RETIRED_KEYS: dict[str, str] = {
     "planes.num_iters": _FIXED + " (planes.NUM_ITERS)",
     "rectify.keep_plain": _REPLACING,
     "rectify.tilt_bank_of": "retired: tilt neighbours are always around plane hypotheses",
+    "sift.patch_upsample_in_warp": "retired: views that COLMAP's SIFT runs from octave -1 are"
+    " always warped at it (sift.warp_upsampling)",
     "rectify.max_patch_area_factor": _VIEW_BUDGET,
     "rectify.max_total_area_factor": _VIEW_BUDGET,
     "rectify.max_total_pixels": _VIEW_BUDGET,

@@ -1,4 +1,6 @@
-"""COLMAP's SIFT through pycolmap: on the whole image (plain SIFT) and in rectified views.
+"""COLMAP's SIFT through pycolmap: on the whole image (plain SIFT) and in rectified views;
+in the views of small images OpenCV's SIFT made to give COLMAP's features (``opencv_sift``,
+``SiftConf.patch_backend``).
 
 Input: a grayscale image (h, w) uint8, a ``SiftConf`` and a budget. Output: ``Features``
 (rectified_colmap.features): keypoints in COLMAP pixels of the ORIGINAL image, affine
@@ -304,23 +306,18 @@ def plain_sift(gray: np.ndarray, conf: SiftConf, sift: Sift | None = None) -> Fe
 def warp_upsampling(size: tuple[int, int], budget: int, first_octave: int, conf: SiftConf) -> int:
     """How much finer than planned a view of ``size`` (w, h) with this SIFT ``budget`` is
     warped (``rectified_features``): 2**-first_octave for a negative first octave with
-    ``conf.patch_upsample_in_warp``, unless coarse-first pays in the view or the finer view
+    COLMAP's SIFT, unless coarse-first pays in the view or the finer view
     would pass ``conf.max_image_size``; else 1."""
     w, h = size
     up = 2 ** max(0, -first_octave)
-    if (
-        up == 1
-        or not conf.patch_upsample_in_warp
-        or coarse_first_pays((h, w), budget, conf)
-        or max(w, h) * up > conf.max_image_size
-    ):
+    if up == 1 or coarse_first_pays((h, w), budget, conf) or max(w, h) * up > conf.max_image_size:
         return 1
     return up
 
 
 def opencv_views(shape: tuple[int, int], conf: SiftConf) -> bool:
     """Whether OpenCV's SIFT runs the views of an image of ``shape`` (h, w) (their pixels:
-    ``rectify.opencv_view_pixels_factor`` x the image's): ``sift.patch_backend`` "opencv"
+    budget.OPENCV_VIEW_PIXELS_RATIO x more): ``sift.patch_backend`` "opencv"
     where the views' SIFT starts at the upsampled octave in one call (below
     ``sift.patch_octave0_pixels_per_feature`` pixels per feature, where coarse-first does not
     pay; ``opencv_view`` decides per view; budget.view_pixel_budget)."""
@@ -347,6 +344,43 @@ def opencv_view(image_shape: tuple[int, int], size: tuple[int, int], conf: SiftC
     )
 
 
+def view_features(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    rect: Rectification,
+    budget: int,
+    conf: SiftConf,
+    sift: Sift | None = None,
+) -> Features:
+    """SIFT of one rectified view (``budget`` features), keypoints in the planned view's
+    pixels. COLMAP's from the octave ``patch_first_octave`` gives the whole image ``gray``;
+    a negative one (small images) is taken in the warp (``warp_upsampling``): the view
+    warped from the image that much finer, SIFT from octave 0 there. The same scale space
+    and cost as SIFT upsampling the planned view, but where the pixel budget shrank the view
+    below the image's resolution the finer octave holds the image's detail. Where
+    ``opencv_view``: the view at its planned size, OpenCV's SIFT from its upsampled octave
+    (``opencv_sift``)."""
+    if opencv_view(gray.shape, rect.size, conf):
+        m, desc = opencv_sift(warp_to_rectified(gray, camera, rect), conf, budget)
+        frames = similarity_frames(m[:, 2], m[:, 3])
+        return Features(m[:, :2], frames, desc, np.full(len(m), -1, np.int32))
+    first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
+    up = warp_upsampling(rect.size, budget, first_octave, conf)
+    patch_img = warp_to_rectified(gray, camera, upsampled_rectification(rect, up))
+    feats = detect_sift(
+        patch_img,
+        conf,
+        budget,
+        first_octave if up == 1 else 0,
+        coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
+        slot="patch",
+        sift=sift,
+    )
+    if up > 1 and len(feats):  # back to the planned view's pixels (a plain multiplication)
+        feats = Features(feats.keypoints / up, feats.shapes / up, feats.descriptors, feats.patch)
+    return feats
+
+
 def rectified_features(
     gray: np.ndarray,
     camera: pycolmap.Camera,
@@ -356,39 +390,10 @@ def rectified_features(
     border: int,
     sift: Sift | None = None,
 ) -> Features:
-    """SIFT inside one rectified view (``budget`` features, from the octave
-    ``patch_first_octave`` gives the whole image ``gray`` with ``conf``'s budget), mapped
-    back to the original image; features closer than ``border`` rectified pixels to the
-    border of the warped region are dropped. Their source (``patch``) is
-    ``rect.patch_index``.
-
-    A negative first octave (small images) is taken in the warp (``warp_upsampling``): the
-    view warped from the image that much finer, SIFT from octave 0 there. The same scale
-    space and cost as SIFT upsampling the planned view, but where the pixel budget shrank
-    the view below the image's resolution the finer octave holds the image's detail.
-    Except where ``opencv_view``: the view at its planned size, OpenCV's SIFT from its
-    upsampled octave (``opencv_sift``)."""
-    first_octave = patch_first_octave(gray.shape, conf.max_num_features, conf)
-    if opencv_view(gray.shape, rect.size, conf):
-        patch_img = warp_to_rectified(gray, camera, rect)
-        m, desc = opencv_sift(patch_img, conf, budget)
-        frames = similarity_frames(m[:, 2], m[:, 3])
-        feats = Features(m[:, :2], frames, desc, np.full(len(m), -1, np.int32))
-        up = 1
-    else:
-        up = warp_upsampling(rect.size, budget, first_octave, conf)
-        patch_img = warp_to_rectified(gray, camera, upsampled_rectification(rect, up))
-        feats = detect_sift(
-            patch_img,
-            conf,
-            budget,
-            first_octave if up == 1 else 0,
-            coarse_first=coarse_first_pays(patch_img.shape, budget, conf),
-            slot="patch",
-            sift=sift,
-        )
-    if up > 1 and len(feats):  # back to the planned view's pixels (a plain multiplication)
-        feats = Features(feats.keypoints / up, feats.shapes / up, feats.descriptors, feats.patch)
+    """SIFT inside one rectified view (``view_features``), mapped back to the original
+    image; features closer than ``border`` rectified pixels to the border of the warped
+    region are dropped. Their source (``patch``) is ``rect.patch_index``."""
+    feats = view_features(gray, camera, rect, budget, conf, sift)
     if len(feats) == 0:
         return feats
     valid = rect.mask.astype(np.uint8)

@@ -6,6 +6,7 @@ import pytest
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.budget import (
+    OPENCV_VIEW_PIXELS_RATIO,
     cut_to_room,
     largest_scales,
     lookalike_room,
@@ -316,23 +317,24 @@ def test_view_pixel_budget_is_relative_to_the_image_up_to_what_sift_can_use():
     )
     downscaled = ExtractConf.from_dict({"sift": {"max_image_size": 640}})
     assert view_pixel_budget((1024, 1536), downscaled) == pytest.approx(
-        downscaled.rectify.opencv_view_pixels_factor * 640 * 427  # 33 px / feature
+        downscaled.rectify.max_view_pixels_factor * OPENCV_VIEW_PIXELS_RATIO * 640 * 427
     )
 
 
 def test_views_run_by_opencv_sift_get_their_own_pixel_factor():
     """Where OpenCV's SIFT runs the views (sift.patch_backend "opencv", views from the
     upsampled octave: below sift.patch_octave0_pixels_per_feature pixels per feature) they
-    have rectify.opencv_view_pixels_factor x the image's pixels; elsewhere, and with COLMAP's
+    have OPENCV_VIEW_PIXELS_RATIO x rectify.max_view_pixels_factor x the image's pixels;
+    elsewhere, and with COLMAP's
     SIFT or upright SIFT, rectify.max_view_pixels_factor x."""
     conf = ExtractConf.from_dict(
         {
-            "rectify": {"max_view_pixels_factor": 2.0, "opencv_view_pixels_factor": 5.0},
+            "rectify": {"max_view_pixels_factor": 2.0},
             "sift": {"max_num_features": 8192, "patch_backend": "opencv"},
         }
     )
     assert opencv_views((480, 640), conf.sift)
-    assert view_pixel_budget((480, 640), conf) == 5.0 * 640 * 480
+    assert view_pixel_budget((480, 640), conf) == 2.0 * OPENCV_VIEW_PIXELS_RATIO * 640 * 480
     assert not opencv_views((1024, 1536), conf.sift)  # 192 px per feature: octave 0
     assert view_pixel_budget((1024, 1536), conf) == 2.0 * 8192 * 150
     assert not opencv_views((4000, 6000), conf.sift)  # coarse-first pays

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.budget import view_pixel_budget
+from rectified_colmap import sift as sift_module
+from rectified_colmap.budget import OPENCV_VIEW_PIXELS_RATIO, view_pixel_budget
 from rectified_colmap.camera import make_camera, rays_to_image
 from rectified_colmap.config import VIEW_RESOLUTIONS, RectifyConf
 from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
@@ -348,22 +349,21 @@ def test_warp_upsampling_only_where_sift_would_upsample_the_view():
     conf = SiftConf()
     assert warp_upsampling((400, 300), 2000, -1, conf) == 2  # 60 px / feature: upsampled
     assert warp_upsampling((400, 300), 2000, 0, conf) == 1  # no upsampled octave
-    assert warp_upsampling((400, 300), 2000, -1, replace(conf, patch_upsample_in_warp=False)) == 1
     assert warp_upsampling((1000, 1000), 100, -1, conf) == 1  # coarse-first pays there
     assert warp_upsampling((1700, 200), 2000, -1, conf) == 1  # 3400 > max_image_size
     assert warp_upsampling((1600, 200), 2000, -1, conf) == 2
 
 
-def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
+def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost(monkeypatch):
     """A plane 75 degrees from the view, rectified with its true normal, matched to a view
     20 degrees from it (plain SIFT). With the view shrunk by a small pixel budget, warping
-    it at SIFT's upsampled octave (sift.patch_upsample_in_warp) gives more GT-consistent
+    it at SIFT's upsampled octave (sift.warp_upsampling; COLMAP's SIFT) gives more GT-consistent
     matches than SIFT upsampling the shrunk view; with a budget that does not shrink it,
     the two are the same scale space (about the same count)."""
     from rectified_colmap.config import ExtractConf
     from rectified_colmap.geometry import scaled_size
     from rectified_colmap.pipeline import extract_image, features_on_top
-    from rectified_colmap.sift import plain_sift
+    from rectified_colmap.sift import plain_sift, warp_upsampling
     from rectified_colmap.views import plan_views
 
     cam, img0, img1, H01, n_true = oblique_and_frontal_shots(75.0)
@@ -374,8 +374,11 @@ def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
             conf = ExtractConf.from_dict(
                 {
                     "rectify": {"tilt_steps": 0, "max_view_pixels_factor": factor},
-                    "sift": {"patch_upsample_in_warp": on, "patch_backend": "colmap"},
+                    "sift": {"patch_backend": "colmap"},
                 }
+            )
+            monkeypatch.setattr(
+                sift_module, "warp_upsampling", warp_upsampling if on else lambda *a: 1
             )
             w, h = scaled_size(640, 480, conf.normals.work_max_size)
             patch = Patch(np.ones((h, w), bool), 0, n_true, 1.0)
@@ -387,7 +390,7 @@ def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost():
     assert abs(counts[2.0, True] - counts[2.0, False]) <= 0.1 * counts[2.0, False], counts
 
 
-def test_views_through_opencv_sift_match_as_through_colmap_sift():
+def test_views_through_opencv_sift_match_as_through_colmap_sift(monkeypatch):
     """The views' backend: a plane 75 degrees from the view, rectified with its true normal,
     matched to plain SIFT of a view 20 degrees from it. OpenCV's SIFT in the view
     (sift.patch_backend "opencv") gives about the GT-consistent matches of COLMAP's from
@@ -400,18 +403,19 @@ def test_views_through_opencv_sift_match_as_through_colmap_sift():
 
     cam, img0, img1, H01, n_true = oblique_and_frontal_shots(75.0)
     b = extract_image(img1, cam, None).features  # plain SIFT
+    monkeypatch.setattr(sift_module, "warp_upsampling", lambda *a: 1)  # SIFT upsamples
     counts = {}
-    for backend in ("colmap", "opencv"):
+    for backend, factor in (("colmap", 2.0), ("opencv", 2.0 / OPENCV_VIEW_PIXELS_RATIO)):
         conf = ExtractConf.from_dict(
             {
-                "rectify": {"tilt_steps": 0, "opencv_view_pixels_factor": 2.0},
-                "sift": {"patch_backend": backend, "patch_upsample_in_warp": False},
+                "rectify": {"tilt_steps": 0, "max_view_pixels_factor": factor},
+                "sift": {"patch_backend": backend},
             }
         )
         w, h = scaled_size(640, 480, conf.normals.work_max_size)
         patch = Patch(np.ones((h, w), bool), 0, n_true, 1.0)
         pixels = view_pixel_budget(img0.shape, conf)
-        assert pixels == 2.0 * img0.size
+        assert pixels == pytest.approx(2.0 * img0.size)
         views = plan_views(img0, cam, [patch], (h, w), conf.rectify, pixels)
         a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
         assert (a.patch >= 0).sum() > 300
