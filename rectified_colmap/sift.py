@@ -360,6 +360,8 @@ def view_features(
     below the image's resolution the finer octave holds the image's detail. Where
     ``opencv_view``: the view at its planned size, OpenCV's SIFT from its upsampled octave
     (``opencv_sift``)."""
+    if budget <= 0:
+        return Features.empty()
     if opencv_view(gray.shape, rect.size, conf):
         m, desc = opencv_sift(warp_to_rectified(gray, camera, rect), conf, budget)
         frames = similarity_frames(m[:, 2], m[:, 3])
