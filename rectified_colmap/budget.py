@@ -2,7 +2,7 @@
 
 The rectified views of an image together have at most ``rectify.max_view_pixels_factor``
 x the image's pixels, :data:`OPENCV_VIEW_PIXELS_RATIO` x that where OpenCV's SIFT (~2.5x
-faster per pixel on one core) runs them (:func:`view_pixel_budget`,
+faster per pixel on one core) runs them from the upsampled octave (:func:`view_pixel_budget`,
 rectified_colmap.sift.opencv_views; pixels beyond those that SIFT's budget can use are not
 counted): a budget relative to the image, so small photos and video frames pay the same
 share as large ones. Views over it are cut to the largest common
@@ -31,20 +31,23 @@ import numpy as np
 from .config import ExtractConf
 from .features import Features
 from .geometry import singular_values_2x2
-from .sift import opencv_views, sift_input_size
+from .sift import opencv_views, patch_first_octave, sift_input_size
 
 OPENCV_VIEW_PIXELS_RATIO = 3.0
-"""Where OpenCV's SIFT runs an image's views (sift.opencv_views), they get this x
+"""Where OpenCV's SIFT runs an image's views from the upsampled octave (sift.opencv_views,
+small images: below ``sift.patch_octave0_pixels_per_feature`` pixels per feature), they get
+this x
 ``rectify.max_view_pixels_factor`` x the image's pixels: its SIFT is 2.4-2.7x faster per
 pixel on one core. Chosen on the choose half of the generated extreme pairs (2026-12-06,
 research log): with the default's 2, 6 x solved the most pairs (then cases) at no more
-extraction time than COLMAP's SIFT at 2 x."""
+extraction time than COLMAP's SIFT at 2 x. Views from octave 0 (1.2-4 MP at 8192 features)
+keep their pixels: no pairs of that size chose a ratio, so OpenCV's speed is saved there."""
 
 
 def view_pixel_budget(shape: tuple[int, int], conf: ExtractConf) -> float:
     """Pixels all rectified views of an image of ``shape`` (h, w) may have together:
     ``rectify.max_view_pixels_factor`` (x ``OPENCV_VIEW_PIXELS_RATIO`` where
-    ``opencv_views``) x the pixels of the image as SIFT sees it
+    ``opencv_views`` from the upsampled octave) x the pixels of the image as SIFT sees it
     (downscaled to ``sift.max_image_size``, as COLMAP), counted up to what SIFT's budget
     can use: ``sift.max_num_features`` x ``sift.patch_octave0_pixels_per_feature`` (from
     that many pixels per feature on, the budget fills without the upsampled octave: finer
@@ -52,7 +55,8 @@ def view_pixel_budget(shape: tuple[int, int], conf: ExtractConf) -> float:
     w, h = sift_input_size(shape[1], shape[0], conf.sift)
     usable = conf.sift.max_num_features * conf.sift.patch_octave0_pixels_per_feature
     factor = conf.rectify.max_view_pixels_factor
-    if opencv_views(shape, conf.sift):
+    n = conf.sift.max_num_features
+    if opencv_views(shape, conf.sift) and patch_first_octave(shape, n, conf.sift) < 0:
         factor *= OPENCV_VIEW_PIXELS_RATIO
     return factor * min(w * h, usable)
 

@@ -99,9 +99,10 @@ class DedupConf:
 
 PATCH_BACKENDS = ("colmap", "opencv")
 """``SiftConf.patch_backend``: SIFT in the rectified views of images whose views start at
-the upsampled octave (sift.opencv_views: small images): COLMAP's through pycolmap, or
-OpenCV's with precise upscaling (sift.opencv_sift: the same keypoints and, in COLMAP's
-RootSIFT byte scale, the same descriptors, ~2.5x faster on one core; the views then get
+octave -1 or 0 in one call (sift.opencv_views: where coarse-first does not pay, up to ~4 MP
+at 8192 features): COLMAP's through pycolmap, or OpenCV's with precise upscaling
+(sift.opencv_sift: the same keypoints and, in COLMAP's RootSIFT byte scale, the same
+descriptors, 2.5-3x faster on one core; views from octave -1 then get
 budget.OPENCV_VIEW_PIXELS_RATIO x the pixels). Plain SIFT is COLMAP's always."""
 
 
@@ -122,7 +123,7 @@ class SiftConf:
     coarse_first: bool = True  # large images: coarse octaves first (features.detect_sift)
     coarse_first_pixels_per_feature: float = 500.0  # ...from this many pixels per feature
     patch_budget_factor: float = 2.0  # views' SIFT budget / the features they may add
-    patch_backend: str = "opencv"  # SIFT of views from octave -1: colmap | opencv (PATCH_BACKENDS)
+    patch_backend: str = "opencv"  # views from octave -1 / 0: colmap | opencv (PATCH_BACKENDS)
     pool_coarse_first_min_pixels: float = 3e6  # plain SIFT coarse-first from this many pixels
 
     def __post_init__(self):

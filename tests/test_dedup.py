@@ -322,11 +322,11 @@ def test_view_pixel_budget_is_relative_to_the_image_up_to_what_sift_can_use():
 
 
 def test_views_run_by_opencv_sift_get_their_own_pixel_factor():
-    """Where OpenCV's SIFT runs the views (sift.patch_backend "opencv", views from the
-    upsampled octave: below sift.patch_octave0_pixels_per_feature pixels per feature) they
-    have OPENCV_VIEW_PIXELS_RATIO x rectify.max_view_pixels_factor x the image's pixels;
-    elsewhere, and with COLMAP's
-    SIFT or upright SIFT, rectify.max_view_pixels_factor x."""
+    """Where OpenCV's SIFT runs the views from the upsampled octave (sift.patch_backend
+    "opencv", below sift.patch_octave0_pixels_per_feature pixels per feature) they have
+    OPENCV_VIEW_PIXELS_RATIO x rectify.max_view_pixels_factor x the image's pixels; where it
+    runs them from octave 0, elsewhere, and with COLMAP's SIFT or upright SIFT,
+    rectify.max_view_pixels_factor x."""
     conf = ExtractConf.from_dict(
         {
             "rectify": {"max_view_pixels_factor": 2.0},
@@ -335,7 +335,7 @@ def test_views_run_by_opencv_sift_get_their_own_pixel_factor():
     )
     assert opencv_views((480, 640), conf.sift)
     assert view_pixel_budget((480, 640), conf) == 2.0 * OPENCV_VIEW_PIXELS_RATIO * 640 * 480
-    assert not opencv_views((1024, 1536), conf.sift)  # 192 px per feature: octave 0
+    assert opencv_views((1024, 1536), conf.sift)  # 192 px per feature: octave 0
     assert view_pixel_budget((1024, 1536), conf) == 2.0 * 8192 * 150
     assert not opencv_views((4000, 6000), conf.sift)  # coarse-first pays
     for other in ({"patch_backend": "colmap"}, {"upright": True}):
