@@ -135,10 +135,11 @@ def opencv_sift(
 
     OpenCV always starts at the upsampled octave. First octave 0 (views of 1.2-4 MP images
     at 8192 features): the image halved (``halved``), OpenCV's upsampled octave is then the
-    image's own resolution, and the keypoints are doubled back: the same scale space up to
-    the finest detail (on a 1536x1024 photo 69 % of COLMAP's keypoints within 0.5 px, scale
-    ratio 1.000, descriptor cosine 0.997 where the orientations agree; at first octave -1,
-    85 %), at a quarter of OpenCV's pixels."""
+    image's own resolution, and the keypoints are doubled back: COLMAP's octaves, but the
+    halving and OpenCV's upsampling blur the finest detail a little differently from
+    VLFeat's octave 0 (on 1536x1024 photos 69-70 % of COLMAP's keypoints within 0.5 px,
+    against 85-89 % from octave -1; scale ratio 1.000, descriptor cosine 0.998 where the
+    orientations agree), at a quarter of OpenCV's pixels."""
     if first_octave not in (-1, 0):
         raise ValueError(f"opencv_sift: first octave {first_octave}, not -1 or 0")
     if first_octave == 0:
