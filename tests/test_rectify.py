@@ -390,19 +390,33 @@ def test_warping_at_the_first_octave_keeps_detail_a_shrunk_view_lost(monkeypatch
     assert abs(counts[2.0, True] - counts[2.0, False]) <= 0.1 * counts[2.0, False], counts
 
 
-def test_views_through_opencv_sift_match_as_through_colmap_sift(monkeypatch):
-    """The views' backend: a plane 75 degrees from the view, rectified with its true normal,
-    matched to plain SIFT of a view 20 degrees from it. OpenCV's SIFT in the view
-    (sift.patch_backend "opencv") gives about the GT-consistent matches of COLMAP's from
-    the same upsampled octave and the same view pixels (within 15 %)."""
-    from rectified_colmap.config import ExtractConf
+def _true_view_matches(conf, pixels: float) -> int:
+    """GT-consistent matches of plain SIFT plus the view of a plane 75 degrees from the
+    camera, rectified with its true normal within ``pixels`` (asserted to be the conf's
+    budget), against plain SIFT of a view 20 degrees from it (``conf`` for both)."""
     from rectified_colmap.geometry import scaled_size
     from rectified_colmap.pipeline import extract_image, features_on_top
     from rectified_colmap.sift import plain_sift
     from rectified_colmap.views import plan_views
 
     cam, img0, img1, H01, n_true = oblique_and_frontal_shots(75.0)
-    b = extract_image(img1, cam, None).features  # plain SIFT
+    b = extract_image(img1, cam, None, conf).features  # plain SIFT
+    w, h = scaled_size(640, 480, conf.normals.work_max_size)
+    patch = Patch(np.ones((h, w), bool), 0, n_true, 1.0)
+    assert view_pixel_budget(img0.shape, conf) == pytest.approx(pixels)
+    views = plan_views(img0, cam, [patch], (h, w), conf.rectify, pixels)
+    a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
+    assert (a.patch >= 0).sum() > 300
+    return gt_consistent_matches(a, b, H01)
+
+
+def test_views_through_opencv_sift_match_as_through_colmap_sift(monkeypatch):
+    """The views' backend: a plane 75 degrees from the view, rectified with its true normal,
+    matched to plain SIFT of a view 20 degrees from it. OpenCV's SIFT in the view
+    (sift.patch_backend "opencv") gives about the GT-consistent matches of COLMAP's from
+    the same upsampled octave and the same view pixels (within 15 %)."""
+    from rectified_colmap.config import ExtractConf
+
     monkeypatch.setattr(sift_module, "warp_upsampling", lambda *a: 1)  # SIFT upsamples
     counts = {}
     for backend, factor in (("colmap", 2.0), ("opencv", 2.0 / OPENCV_VIEW_PIXELS_RATIO)):
@@ -412,14 +426,7 @@ def test_views_through_opencv_sift_match_as_through_colmap_sift(monkeypatch):
                 "sift": {"patch_backend": backend},
             }
         )
-        w, h = scaled_size(640, 480, conf.normals.work_max_size)
-        patch = Patch(np.ones((h, w), bool), 0, n_true, 1.0)
-        pixels = view_pixel_budget(img0.shape, conf)
-        assert pixels == pytest.approx(2.0 * img0.size)
-        views = plan_views(img0, cam, [patch], (h, w), conf.rectify, pixels)
-        a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
-        assert (a.patch >= 0).sum() > 300
-        counts[backend] = gt_consistent_matches(a, b, H01)
+        counts[backend] = _true_view_matches(conf, 2.0 * 640 * 480)
     assert counts["colmap"] > 200, counts
     # measured 1378 / 1542: OpenCV finds ~10 % fewer points (docs/architecture.md)
     assert 0.85 * counts["colmap"] <= counts["opencv"] <= 1.15 * counts["colmap"], counts
@@ -431,27 +438,15 @@ def test_views_from_octave_0_through_opencv_sift_match_as_through_colmap_sift():
     (sift.opencv_sift): about the GT-consistent matches of COLMAP's from octave 0 at the
     same view pixels (within 15 %), on the scene of the test above."""
     from rectified_colmap.config import ExtractConf
-    from rectified_colmap.geometry import scaled_size
-    from rectified_colmap.pipeline import extract_image, features_on_top
-    from rectified_colmap.sift import opencv_views, patch_first_octave, plain_sift
-    from rectified_colmap.views import plan_views
+    from rectified_colmap.sift import opencv_views, patch_first_octave
 
-    cam, img0, img1, H01, n_true = oblique_and_frontal_shots(75.0)
     counts = {}
     for backend in ("colmap", "opencv"):
         sift = {"patch_backend": backend, "max_num_features": 2000}
         conf = ExtractConf.from_dict({"rectify": {"tilt_steps": 0}, "sift": sift})
-        assert patch_first_octave(img0.shape, 2000, conf.sift) == 0
-        assert opencv_views(img0.shape, conf.sift) == (backend == "opencv")
-        b = extract_image(img1, cam, None, conf).features  # plain SIFT
-        w, h = scaled_size(640, 480, conf.normals.work_max_size)
-        patch = Patch(np.ones((h, w), bool), 0, n_true, 1.0)
-        pixels = view_pixel_budget(img0.shape, conf)
-        assert pixels == pytest.approx(2.0 * 2000 * 150)  # no OpenCV ratio from octave 0
-        views = plan_views(img0, cam, [patch], (h, w), conf.rectify, pixels)
-        a = features_on_top(img0, cam, views, plain_sift(img0, conf.sift), conf)
-        assert (a.patch >= 0).sum() > 300
-        counts[backend] = gt_consistent_matches(a, b, H01)
+        assert patch_first_octave((480, 640), 2000, conf.sift) == 0
+        assert opencv_views((480, 640), conf.sift) == (backend == "opencv")
+        counts[backend] = _true_view_matches(conf, 2.0 * 2000 * 150)  # no ratio from octave 0
     assert counts["colmap"] > 200, counts
     assert 0.85 * counts["colmap"] <= counts["opencv"] <= 1.15 * counts["colmap"], counts
 

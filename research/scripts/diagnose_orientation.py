@@ -27,7 +27,6 @@ tilt bin) and ``orientation.csv``.
 from __future__ import annotations
 
 import argparse
-import csv
 import logging
 import sys
 from pathlib import Path
@@ -38,10 +37,15 @@ import numpy as np
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.errors import run_script
-from rectified_colmap.eval.homography import points_in_region, read_homography_pairs
+from rectified_colmap.eval.homography import points_in_region
 from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
 from rectified_colmap.pipeline import image_planes, with_vanishing_points
-from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera, rotation_class
+from rectified_colmap_research.evaluation.homography_report import write_records_csv
+from rectified_colmap_research.evaluation.extreme_pairs import (
+    pinhole_camera,
+    read_half,
+    rotation_class,
+)
 
 logger = logging.getLogger("diagnose_orientation")
 MIN_INSIDE = 0.2
@@ -138,10 +142,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     cv2.setNumThreads(1)
-    pairs = read_homography_pairs(args.data / "pairs.json", args.data)
-    if args.split:
-        pairs = [q for q in pairs if q.info.get("split") == args.split]
-    pairs = pairs[: args.max_pairs]
+    pairs = read_half(args.data, args.split, args.max_pairs)
     from rectified_colmap.depth.registry import load_depth_source
 
     network = load_depth_source(args.depth_model, num_threads=1)
@@ -173,10 +174,7 @@ def main(argv=None) -> int:
             )
             logger.info("%s %d: %s", q.name, k, {s: round(v, 1) for s, v in errors.items()})
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    with open(args.output_dir / "orientation.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_records_csv(args.output_dir / "orientation.csv", rows)
     head = (
         f"cameras {args.cameras}, {len(pairs)} pairs{f' ({args.split})' if args.split else ''}; "
         "best patch on the plane, degrees from the true normal\n\n"

@@ -37,7 +37,6 @@ and records.csv.
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import json
 import logging
@@ -54,7 +53,6 @@ from rectified_colmap.errors import run_script
 from rectified_colmap.eval.homography import (
     HomographyConf,
     evaluate_homography_pairs,
-    read_homography_pairs,
 )
 from rectified_colmap.features import Features
 from rectified_colmap.geometry import scaled_size
@@ -62,7 +60,8 @@ from rectified_colmap.io.hloc_h5 import rootsift_unit
 from rectified_colmap.pipeline import image_planes, with_vanishing_points
 from rectified_colmap.sift import Sift, plain_sift, rectified_features
 from rectified_colmap.views import plan_views
-from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera
+from rectified_colmap_research.evaluation.homography_report import write_records_csv
+from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera, read_half
 from rectified_colmap_research.evaluation.oracle import plane_depth
 from rectified_colmap_research.evaluation.view_meeting import met_fraction, view_set
 
@@ -176,10 +175,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s")
     cv2.setNumThreads(1)
-    pairs = read_homography_pairs(args.data / "pairs.json", args.data)
-    if args.split:
-        pairs = [q for q in pairs if q.info.get("split") == args.split]
-    pairs = pairs[: args.max_pairs]
+    pairs = read_half(args.data, args.split, args.max_pairs)
     overrides = json.loads(args.conf) if args.conf else {}
     if args.orientation == "true":  # the true plane's own view only
         overrides = {"vp": {"enabled": False, "line_hypotheses": 0}, **overrides}
@@ -222,10 +218,7 @@ def main(argv=None) -> int:
     feats = {s: f for s, f in feats.items() if f}
     records = evaluate_homography_pairs(pairs, feats, HomographyConf())
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    with open(args.output_dir / "records.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(records[0]))
-        w.writeheader()
-        w.writerows(records)
+    write_records_csv(args.output_dir / "records.csv", records)
     head = (
         f"orientation {args.orientation}, cameras {args.cameras}, focal x {args.focal_factor}, "
         f"{len(pairs)} pairs{f' ({args.split})' if args.split else ''}\n\n"

@@ -47,7 +47,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import logging
 import sys
@@ -72,6 +71,7 @@ from rectified_colmap.pipeline import extract_image
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.asift import asift_features
 from rectified_colmap_research.evaluation.homography_report import (
+    write_records_csv,
     split_group_markdown,
     split_summary_markdown,
 )
@@ -305,10 +305,7 @@ def main(argv=None) -> int:
     keys = [k for k in [args.split_key, *args.group_by] if any(k in q.info for q in pairs)]
     for r in records:
         r.update({k: info[r["pair"]].get(k, "-") for k in keys})
-    with open(out / "records.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(records[0]))
-        w.writeheader()
-        w.writerows(records)
+    write_records_csv(out / "records.csv", records)
     splits = None
     if any(args.split_key in q.info for q in pairs):
         splits = {q.name: str(q.info.get(args.split_key, "-")) for q in pairs}

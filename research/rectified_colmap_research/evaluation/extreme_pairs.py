@@ -80,6 +80,18 @@ def intrinsics(focal: float, size: tuple[int, int]) -> np.ndarray:
     return np.array([[focal, 0, size[0] / 2], [0, focal, size[1] / 2], [0, 0, 1.0]])
 
 
+def read_half(data: Path, split: str | None = None, max_pairs: int | None = None) -> list:
+    """The homography pairs of ``data``/pairs.json (images under ``data``), those of the
+    half ``split`` (the pair files' "split": "choose" or "check") when given, at most
+    ``max_pairs`` of them (rectified_colmap.eval.homography.HomographyPair)."""
+    from rectified_colmap.eval.homography import read_homography_pairs
+
+    pairs = read_homography_pairs(Path(data) / "pairs.json", data)
+    if split:
+        pairs = [q for q in pairs if q.info.get("split") == split]
+    return pairs[:max_pairs]
+
+
 def pinhole_camera(focal: float, size: tuple[int, int]):
     """The pycolmap PINHOLE camera of ``intrinsics``: how the views are rendered, and what
     the evaluation gives a method with a known (or guessed) focal length."""

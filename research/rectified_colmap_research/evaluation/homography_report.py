@@ -11,14 +11,24 @@ direction is (as in :func:`rectified_colmap.eval.homography.homography_markdown`
 
 from __future__ import annotations
 
+import csv
 import re
 from collections.abc import Mapping
+from pathlib import Path
 
 import numpy as np
 
 from rectified_colmap.eval.config import HomographyConf
 
 ALL = "all"
+
+
+def write_records_csv(path: Path | str, records: list[dict]) -> None:
+    """Records (dicts with the same keys, in the first one's order) as a CSV file."""
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(records[0]))
+        w.writeheader()
+        w.writerows(records)
 
 
 def label_order(label: str) -> tuple:
