@@ -59,9 +59,11 @@ def alike(ref: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarra
     (m0, d0), (m1, d1) = ref, other
     if len(m0) == 0 or len(m1) == 0:
         return 0.0, float("nan")
-    from scipy.spatial import cKDTree
-
-    dist, j = cKDTree(m1[:, :2]).query(m0[:, :2])
+    nearest = cv2.BFMatcher(cv2.NORM_L2).match(
+        np.ascontiguousarray(m0[:, :2], np.float32), np.ascontiguousarray(m1[:, :2], np.float32)
+    )
+    j = np.array([m.trainIdx for m in nearest])
+    dist = np.array([m.distance for m in nearest])
     near = dist < 0.5
     turn = np.abs(np.angle(np.exp(1j * (m1[j, 3] - m0[:, 3]))))
     both = near & (turn < np.deg2rad(2.0))
