@@ -5,7 +5,8 @@ build_extreme_pairs.py; ``--split`` keeps one half), by the view's in-plane rota
 and tilt (issue 41, item 3: the orientation error the estimators actually make).
 
 For each image, with its true camera (``--cameras true``: the error of the estimators alone,
-not of a guessed focal length), the smallest angle between the true plane normal and the
+not of a guessed focal length; ``guessed`` compares normals in the guessed camera's frame
+with the true ones, so the focal length's error is in the number), the smallest angle between the true plane normal and the
 normal of a patch that lies on the plane (at least ``MIN_INSIDE`` of its work cells in the
 pair's region):
 
@@ -35,9 +36,11 @@ import cv2
 import numpy as np
 
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf
+from rectified_colmap.conventions import pixel_centers
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.homography import points_in_region
+from rectified_colmap.geometry import line_angle_deg
 from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
 from rectified_colmap.pipeline import image_planes, with_vanishing_points
 from rectified_colmap_research.evaluation.homography_report import write_records_csv
@@ -58,9 +61,7 @@ def region_mask(region: list[np.ndarray], image_size: tuple[int, int], shape: tu
     """(h, w) bool work-grid cells whose centre lies in ``region`` (polygons of COLMAP
     pixels of an image of ``image_size`` (W, H))."""
     h, w = shape
-    W, H = image_size
-    ys, xs = np.mgrid[0:h, 0:w]
-    centres = np.stack([(xs + 0.5) * W / w, (ys + 0.5) * H / h], -1).reshape(-1, 2)
+    centres = pixel_centers(w, h, *image_size).reshape(-1, 2)
     return points_in_region(centres, region).reshape(h, w)
 
 
@@ -69,7 +70,7 @@ def best_patch_error(patches: list[Patch], on_plane: np.ndarray, normal: np.ndar
     with at least MIN_INSIDE of its cells in ``on_plane`` (h, w) bool; NaN if none is."""
     n = np.asarray(normal, float) / np.linalg.norm(normal)
     errors = [
-        np.degrees(np.arccos(min(1.0, abs(float(p.normal @ n)) / np.linalg.norm(p.normal))))
+        float(line_angle_deg(p.normal / np.linalg.norm(p.normal), n))
         for p in patches
         if p.mask.any() and (p.mask & on_plane).sum() >= MIN_INSIDE * p.mask.sum()
     ]
