@@ -6,9 +6,9 @@ and tilt (issue 41, item 3: the orientation error the estimators actually make).
 
 For each image, with its true camera (``--cameras true``: the error of the estimators alone,
 not of a guessed focal length; ``guessed`` compares normals in the guessed camera's frame
-with the true ones, so the focal length's error is in the number), the smallest angle between the true plane normal and the
-normal of a patch that lies on the plane (at least ``MIN_INSIDE`` of its work cells in the
-pair's region):
+with the true ones, so the focal length's error is in the number), the smallest angle
+between the true plane normal and the normal of a patch that lies on the plane (at least
+``MIN_INSIDE`` of its work cells in the pair's region):
 
 - ``network``: the depth network's plane patches (rectified_colmap.planes);
 - ``lines``: every patch after the vanishing points (the network's patches oriented by
