@@ -19,7 +19,9 @@ test is cut to the room (:func:`cut_to_room`), largest major scales first
 (:func:`largest_scales`, as COLMAP's own budget keeps the largest scales): first the
 features unlike any plain one, then the look-alikes of plain features
 (rectified_colmap.dedup), but these only in the part of plain SIFT's budget its keypoints
-left unused (:func:`lookalike_room`). A look-alike can crowd a plain feature's match out of
+left unused (:func:`unused_room`), as the features of views over the rest of a plane
+(planes.REST_AXIS: a plane hypothesis over the cells the depth's patches of its
+orientation leave out). A look-alike can crowd a plain feature's match out of
 the ratio test; where plain SIFT fills its budget (a textured photo, whose moderate pairs
 plain SIFT matches) none is kept, where it leaves budget unused (a small or sparse image, a
 strongly foreshortened view) they may fill what plain SIFT did not use."""
@@ -70,8 +72,9 @@ def rectified_room(plain_count: int, conf: ExtractConf) -> int:
     return round(max(plain_count, conf.sift.max_num_features) * conf.dedup.extra_frac)
 
 
-def lookalike_room(plain_count: int, conf: ExtractConf) -> int:
-    """How many look-alikes of plain features may come on top of plain SIFT's
+def unused_room(plain_count: int, conf: ExtractConf) -> int:
+    """How many second-tier rectified keypoints (look-alikes of plain features, the features
+    of views over the rest of a plane: planes.REST_AXIS) may come on top of plain SIFT's
     ``plain_count`` keypoints: the part of plain SIFT's budget ``sift.max_num_features`` its
     keypoints left unused (0 where plain SIFT fills it, or with
     ``dedup.lookalikes_in_unused_budget`` False)."""
@@ -81,27 +84,38 @@ def lookalike_room(plain_count: int, conf: ExtractConf) -> int:
 
 
 def cut_to_room(
-    feats: Features, index: np.ndarray, lookalike: np.ndarray, plain_count: int, conf: ExtractConf
+    feats: Features, index: np.ndarray, second: np.ndarray, plain_count: int, conf: ExtractConf
 ) -> np.ndarray:
     """The rectified features kept on top of plain SIFT's ``plain_count`` keypoints, sorted:
-    of ``feats[index]`` (the candidates, dedup.rectified_candidates), first those that are no
-    look-alike (``lookalike`` (K,) bool: False), largest major scales first, up to the room
-    (``rectified_room``); then look-alikes, largest major scales first, up to the room left
-    and at most ``lookalike_room``."""
+    of ``feats[index]`` (the candidates, dedup.rectified_candidates), first those of the
+    first tier (``second`` (K,) bool: False), largest major scales first, up to the room
+    (``rectified_room``); then the second tier (look-alikes of plain features, features of
+    views over the rest of a plane), largest major scales first, up to the room left and at
+    most ``unused_room``."""
     room = max(0, rectified_room(plain_count, conf))
-    index, lookalike = np.asarray(index), np.asarray(lookalike, bool)
-    first = largest_scales(feats, index[~lookalike], room)
-    left = min(room - len(first), lookalike_room(plain_count, conf))
-    second = largest_scales(feats, index[lookalike], max(0, left))
-    return np.sort(np.concatenate([first, second]))
+    index, second = np.asarray(index), np.asarray(second, bool)
+    first = largest_scales(feats, index[~second], room)
+    left = min(room - len(first), unused_room(plain_count, conf))
+    later = largest_scales(feats, index[second], max(0, left))
+    return np.sort(np.concatenate([first, later]))
 
 
-def view_budgets(plain_count: int, areas: np.ndarray, conf: ExtractConf) -> np.ndarray:
+def view_budgets(
+    plain_count: int, areas: np.ndarray, rest: np.ndarray, conf: ExtractConf
+) -> np.ndarray:
     """(n,) SIFT budgets of n rectified views covering ``areas`` (n,) work cells each, on an
     image where plain SIFT keeps ``plain_count`` keypoints: ``conf.sift.patch_budget_factor``
-    x the room above plain SIFT (``rectified_room``), shared by area (``split_budget``)."""
+    x the room above plain SIFT (``rectified_room``), shared by area (``split_budget``);
+    the views over the rest of a plane (``rest`` (n,) bool) share that factor x the part of
+    the room they may fill (``unused_room``) instead."""
+    rest = np.asarray(rest, bool)
     room = rectified_room(plain_count, conf)
-    return split_budget(round(conf.sift.patch_budget_factor * room), areas)
+    factor = conf.sift.patch_budget_factor
+    out = np.zeros(len(areas), dtype=int)
+    out[~rest] = split_budget(round(factor * room), np.asarray(areas)[~rest])
+    later = min(room, unused_room(plain_count, conf))
+    out[rest] = split_budget(round(factor * later), np.asarray(areas)[rest])
+    return out
 
 
 def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray:
@@ -109,7 +123,7 @@ def split_budget(total: int, areas: np.ndarray, minimum: int = 64) -> np.ndarray
 
     Regions with any area get at least ``minimum`` (when the budget allows)."""
     areas = np.asarray(areas, dtype=np.float64)
-    if areas.sum() <= 0:
+    if areas.sum() <= 0 or total <= 0:
         return np.zeros(len(areas), dtype=int)
     share = total * areas / areas.sum()
     share = np.where(areas > 0, np.maximum(share, min(minimum, total / max(len(areas), 1))), 0)

@@ -92,8 +92,8 @@ class DedupConf:
     min_cosine: float = 0.9  # ...with descriptors more similar than this...
     max_scale_ratio: float = 1.5  # ...and scales within this factor
     max_plain_cosine: float = 0.9  # rectified features this similar to a plain one: look-alikes
-    lookalikes_in_unused_budget: bool = True  # look-alikes only in plain SIFT's unused budget
-    # (budget.lookalike_room); False: never kept (1 above: no look-alikes)
+    lookalikes_in_unused_budget: bool = True  # look-alikes (and the views over the rest of a
+    # plane) only in plain SIFT's unused budget (budget.unused_room); False: never
     extra_frac: float = 0.5  # rectified features on top: at most this x plain SIFT's budget
 
 

@@ -23,14 +23,14 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .budget import cut_to_room, view_budgets, view_pixel_budget
+from .budget import cut_to_room, unused_room, view_budgets, view_pixel_budget
 from .config import ExtractConf
 from .dedup import rectified_candidates
 from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import Features
 from .normals import depth_to_normals
-from .planes import PlaneResult, detect_planes
+from .planes import REST_AXIS, Patch, PlaneResult, detect_planes
 from .rectify import Rectification
 from .sift import Sift, plain_sift, rectified_features
 from .views import ViewSet, plan_views
@@ -98,12 +98,13 @@ def extract_image(
         return ImageResult(plain_sift(gray, conf.sift, sift), timings=t)
     planes, normals = image_planes(camera, depth, conf, rng, t)
     planes = with_vanishing_points(gray, camera, planes, conf, rng, t)
+    with timed(t, "sift_plain"):
+        plain = plain_sift(gray, conf.sift, sift)
+    patches = patches_with_room(planes.patches, len(plain), conf)
     with timed(t, "homographies"):
         pixels = view_pixel_budget(gray.shape, conf)
         shape = planes.labels.shape
-        views = plan_views(
-            gray, camera, planes.patches, shape, conf.rectify, pixels, conf.sift.upright
-        )
+        views = plan_views(gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright)
     result = ImageResult(
         Features.empty(),
         replace(planes, patches=views.patches),
@@ -112,8 +113,6 @@ def extract_image(
         normals,
         t,
     )
-    with timed(t, "sift_plain"):
-        plain = plain_sift(gray, conf.sift, sift)
     result.features = features_on_top(gray, camera, views, plain, conf, sift, t) if views else plain
     return result
 
@@ -187,11 +186,26 @@ def add_plane_hypotheses(
 ) -> PlaneResult:
     """The planes plus whole-image patches for the strongest plane hypotheses from pairs of
     vanishing points (vp.hypotheses; conf.vp.line_hypotheses of them, none within
-    conf.vp.hypothesis_merge_angle_deg of a patch the planes already have)."""
+    conf.vp.hypothesis_merge_angle_deg of a patch the planes already have), and patches
+    over the rest of the planes the patches hold in part (REST_AXIS)."""
     normals, _ = plane_hypotheses(free_vanishing_points(segments, conf.vp), conf.vp)
-    existing = [p.normal for p in planes.patches]
-    extra = hypothesis_patches(normals, camera, planes.labels.shape, existing, conf.vp)
+    extra = hypothesis_patches(normals, camera, planes.labels.shape, planes.patches, conf.vp)
     return replace(planes, patches=list(planes.patches) + extra) if extra else planes
+
+
+def patches_with_room(patches: list[Patch], plain_count: int, conf: ExtractConf) -> list[Patch]:
+    """The patches whose views may add features above plain SIFT's ``plain_count``
+    keypoints: those over the rest of a plane (REST_AXIS) only where plain SIFT left part
+    of its budget unused (budget.unused_room), the others always."""
+    if unused_room(plain_count, conf) > 0:
+        return patches
+    return [p for p in patches if p.axis != REST_AXIS]
+
+
+def rest_patches(views: ViewSet) -> np.ndarray:
+    """(len(views.patches),) bool: which of the views' patches lie over the rest of a plane
+    (REST_AXIS); index it by ``Rectification.patch_index`` or ``Features.patch``."""
+    return np.array([p.axis == REST_AXIS for p in views.patches], bool)
 
 
 def features_on_top(
@@ -205,11 +219,13 @@ def features_on_top(
 ) -> Features:
     """``plain`` (plain SIFT of the whole image, all kept) plus the rectified features of the
     views that twin no plain one (rectified_colmap.dedup), at most the budget's room above
-    plain SIFT, look-alikes of plain features only in plain SIFT's unused budget
+    plain SIFT; look-alikes of plain features and the features of views over the rest of a
+    plane (planes.REST_AXIS) only in plain SIFT's unused budget
     (rectified_colmap.budget.cut_to_room)."""
     t = {} if t is None else t
     areas = views.masks.reshape(len(views.masks), -1).sum(1)
-    budgets = view_budgets(len(plain), areas, conf)
+    rest = rest_patches(views)
+    budgets = view_budgets(len(plain), areas, rest[[r.patch_index for r in views.rects]], conf)
     parts = []
     for rect, budget in zip(views.rects, budgets):
         with timed(t, "warps+sift_patches"):
@@ -218,5 +234,6 @@ def features_on_top(
     with timed(t, "dedup"):
         rectified = Features.concatenate(parts)
         index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
-        keep = cut_to_room(rectified, index, lookalike, len(plain), conf)
+        second = lookalike | rest[rectified.patch[index]]
+        keep = cut_to_room(rectified, index, second, len(plain), conf)
         return Features.concatenate([plain, rectified.subset(keep)])

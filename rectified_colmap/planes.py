@@ -38,6 +38,11 @@ NUM_ITERS = 15
 HYPOTHESIS_AXIS = -1
 """``Patch.axis`` of a plane hypothesis from a pair of vanishing points (no dominant
 direction: rectified_colmap.vp.hypotheses)."""
+REST_AXIS = -2
+"""``Patch.axis`` of a plane hypothesis over the rest of its plane: the front-facing cells
+that the image's patches of its orientation (the depth's, oriented by the lines) do not
+cover (rectified_colmap.vp.hypotheses.hypothesis_patches). Its views' features come only
+in the part of plain SIFT's budget its keypoints left unused (rectified_colmap.budget)."""
 
 
 @dataclass

@@ -29,7 +29,7 @@ import pycolmap
 from . import camera as cam_utils
 from .config import RectifyConf
 from .geometry import axis_angle_rotation
-from .planes import HYPOTHESIS_AXIS, Patch
+from .planes import HYPOTHESIS_AXIS, REST_AXIS, Patch
 from .rectify import Rectification, finish_rectification, patch_view, view_camera
 
 logger = logging.getLogger(__name__)
@@ -161,8 +161,8 @@ def with_tilt_neighbours(
     camera: pycolmap.Camera, patches: list[Patch], todo: list[int], conf: RectifyConf
 ) -> tuple[list[Patch], list[int]]:
     """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
-    of the plane hypotheses in ``todo`` (HYPOTHESIS_AXIS: planes from pairs of vanishing
-    points, rectified_colmap.vp.hypotheses, whose orientations err most) seen at
+    of the plane hypotheses in ``todo`` (HYPOTHESIS_AXIS and REST_AXIS: planes from pairs of
+    vanishing points, rectified_colmap.vp.hypotheses, whose orientations err most) seen at
     conf.tilt_bank_min_angle_deg or more (appended after all of ``patches``, each a patch of
     its own), and ``todo`` with their indices added."""
     if conf.tilt_steps <= 0 or not todo:
@@ -170,7 +170,7 @@ def with_tilt_neighbours(
     angle = viewing_angles(camera, [patches[i] for i in todo])
     patches, todo = list(patches), list(todo)
     for i, a in zip(list(todo), angle):
-        if a < conf.tilt_bank_min_angle_deg or patches[i].axis != HYPOTHESIS_AXIS:
+        if a < conf.tilt_bank_min_angle_deg or patches[i].axis not in (HYPOTHESIS_AXIS, REST_AXIS):
             continue
         for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
             todo.append(len(patches))

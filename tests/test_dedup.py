@@ -9,8 +9,10 @@ from rectified_colmap.budget import (
     OPENCV_VIEW_PIXELS_RATIO,
     cut_to_room,
     largest_scales,
-    lookalike_room,
     rectified_room,
+    split_budget,
+    unused_room,
+    view_budgets,
     view_pixel_budget,
 )
 from rectified_colmap.config import DedupConf, ExtractConf, merge_conf
@@ -26,7 +28,8 @@ from rectified_colmap.dedup import (
 )
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.features import Features, similarity_frames
-from rectified_colmap.pipeline import extract_image
+from rectified_colmap.pipeline import extract_image, patches_with_room
+from rectified_colmap.planes import HYPOTHESIS_AXIS, REST_AXIS, Patch
 from rectified_colmap.sift import coarse_first_pays, detect_sift, pool_coarse_first
 from tests.conftest import look_at, plane_view, textured_image
 
@@ -166,7 +169,7 @@ def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
 
     # room 50 (75 at 150 keypoints): the 40 others, then up to 10 (35) look-alikes
     for count, expect_looks in ((100, 0), (150, 0), (95, 5), (70, 10), (0, 10)):
-        assert lookalike_room(count, conf) == max(0, 100 - count)
+        assert unused_room(count, conf) == max(0, 100 - count)
         got = cut_to_room(feats, index, lookalike, count, conf)
         expect = np.sort(np.concatenate([others, top(looks, expect_looks)]))
         np.testing.assert_array_equal(got, expect)
@@ -179,8 +182,34 @@ def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
     np.testing.assert_array_equal(cut_to_room(feats, index, lookalike, 0, conf), index)
     assert len(cut_to_room(feats, index, lookalike, 30, conf)) == 40 + 70
     conf.dedup.lookalikes_in_unused_budget = False  # the switch: none
-    assert lookalike_room(0, conf) == 0
+    assert unused_room(0, conf) == 0
     np.testing.assert_array_equal(cut_to_room(feats, index, lookalike, 0, conf), others)
+
+
+def test_views_over_the_rest_of_a_plane_only_fill_plain_sifts_unused_budget():
+    """The views over the rest of a plane (REST_AXIS) get no patch where plain SIFT fills
+    its budget (the other views exactly as without them), and else a SIFT budget of
+    patch_budget_factor x the part of the room plain SIFT left unused, shared by area."""
+    conf = ExtractConf()
+    conf.sift.max_num_features = 100  # room = 50; SIFT budgets 2 x what views may add
+    areas = np.array([10, 30, 20])
+    rest = np.array([False, True, False])
+    alone = split_budget(100, areas[~rest])
+    for count, rest_budget in ((100, 0), (130, 0), (80, 40), (60, 80), (0, 100)):
+        got = view_budgets(count, areas, rest, conf)
+        if count <= 100:
+            np.testing.assert_array_equal(got[~rest], alone)
+        assert got[1] == rest_budget
+    np.testing.assert_array_equal(
+        view_budgets(60, areas, np.zeros(3, bool), conf), split_budget(100, areas)
+    )
+    mask = np.ones((4, 6), bool)
+    normal = np.array([0.6, 0.0, -0.8])
+    patches = [Patch(mask, a, normal, 1.0) for a in (0, HYPOTHESIS_AXIS, REST_AXIS)]
+    assert patches_with_room(patches, 99, conf) == patches
+    assert patches_with_room(patches, 100, conf) == patches[:2]
+    conf.dedup.lookalikes_in_unused_budget = False  # the switch: no second tier at all
+    assert patches_with_room(patches, 0, conf) == patches[:2]
 
 
 def test_the_cut_keeps_the_largest_major_scales_within_the_cap():
@@ -259,7 +288,7 @@ def test_pipeline_default_is_plain_sift_plus_features_that_crowd_none_where_sift
     assert len(plain) >= 400 and len(rect) > 50 and looks == 0
     conf.sift.max_num_features = 12000  # plain SIFT leaves much of it unused
     plain, rect, looks = run(conf)
-    assert len(plain) < 12000 and 0 < looks <= lookalike_room(len(plain), conf)
+    assert len(plain) < 12000 and 0 < looks <= unused_room(len(plain), conf)
     both = Features.concatenate([plain, rect])
     assert duplicate_fraction(both) <= duplicate_fraction(plain) + 0.01
     conf.dedup.lookalikes_in_unused_budget = False

@@ -223,8 +223,8 @@ def test_timings_keys(texture):
         "normals",
         "planes",
         "vp",
+        "sift_plain",  # before the views: the views over the rest of a plane need its count
         "homographies",
-        "sift_plain",
         "warps+sift_patches",
         "dedup",
     ]

@@ -12,7 +12,9 @@ Each hypothesis becomes one whole-image patch (every work cell that sees the pla
 front, as vp.line_planes.whole_image_patches): the rectification's viewing-angle crop keeps
 the cells near its vanishing line out, dedup keeps one feature per location, and the
 budget stays the image's. Hypotheses are not tested for chance (a wrong one costs budget,
-not correctness: it is one more synthesised view, as in ASIFT).
+not correctness: it is one more synthesised view, as in ASIFT). A hypothesis of a plane the
+image's patches already hold in part covers the rest of that plane (planes.REST_AXIS; its
+features only in plain SIFT's unused budget, rectified_colmap.budget).
 
 Conventions: those of vp.segments (camera frame x right, y down, z forward; directions
 sign-free unit 3-vectors); normals face the camera (n_z < 0).
@@ -29,7 +31,7 @@ import pycolmap
 from .. import camera as cam_utils
 from ..config import VpConf
 from ..geometry import line_angle_deg
-from ..planes import HYPOTHESIS_AXIS, Patch
+from ..planes import HYPOTHESIS_AXIS, REST_AXIS, Patch
 from .segments import NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors
 
 
@@ -132,33 +134,56 @@ def hypothesis_patches(
     normals: np.ndarray,
     camera: pycolmap.Camera,
     work_shape: tuple[int, int],
-    existing: list[np.ndarray],
+    existing: list[Patch],
     conf: VpConf = VpConf(),
 ) -> list[Patch]:
     """Whole-image patches for the first conf.line_hypotheses normals not already present
-    and tilted at least conf.hypothesis_min_tilt_deg from the image plane.
+    and tilted at least conf.hypothesis_min_tilt_deg from the image plane, and patches over
+    the rest of the planes the image's patches hold in part.
+
+    A hypothesis within conf.hypothesis_merge_angle_deg of existing patches (the depth's,
+    oriented by the lines) covers the front-facing cells they do not, as a REST_AXIS patch,
+    not counted against conf.line_hypotheses. Such a patch often holds part of its plane
+    only (its near part, or what the network segmented as one surface; on generated extreme
+    pairs the far part of a plane, seen at 78-85 degrees, where the other image's overlap
+    lay, had no view). Its features come only in plain SIFT's unused budget
+    (rectified_colmap.budget.cut_to_room): a plane the depth confirmed in part is covered
+    whole where plain SIFT leaves room, and nothing changes where plain SIFT fills its
+    budget.
 
     Args:
         normals: (P, 3) from plane_hypotheses, best first.
         camera: the image's camera; work_shape: (h, w) of the work grid.
-        existing: normals (3,) of the patches the image already has (depth or lines): a
-            hypothesis within conf.hypothesis_merge_angle_deg of one of them is skipped.
+        existing: the patches the image already has (depth or lines), on the work grid.
     Returns:
-        Patches (axis HYPOTHESIS_AXIS) whose masks hold every work cell seeing the plane
-        from the front (ray . n < 0); they overlap each other and the existing patches.
+        Patches (axis HYPOTHESIS_AXIS or REST_AXIS) whose masks hold the work cells seeing
+        the plane from the front (ray . n < 0; REST_AXIS: but no existing patch of its
+        orientation); they overlap each other and the existing patches of other
+        orientations. A hypothesis within the merge angle of an earlier one of its kind is
+        skipped.
     """
     h, w = work_shape
     rays = cam_utils.unit_grid_rays(camera, w, h)
-    have = [np.asarray(m, float) for m in existing]
-    out = []
+    have = [(np.asarray(p.normal, float), p.mask) for p in existing]  # mask None: all cells
+    merge = conf.hypothesis_merge_angle_deg
+    out, count = [], 0
     for n in normals:
-        if len(out) >= conf.line_hypotheses:
+        if count >= conf.line_hypotheses:
             break
-        if any(line_angle_deg(n, m) < conf.hypothesis_merge_angle_deg for m in have):
-            continue
         if line_angle_deg(n, _OPTICAL_AXIS) < conf.hypothesis_min_tilt_deg:
             continue
+        near = [m for normal, m in have if line_angle_deg(n, normal) < merge]
+        if any(m is None for m in near):
+            continue
         mask = rays @ n < 0
-        out.append(Patch(mask, HYPOTHESIS_AXIS, n, float(mask.mean())))
-        have.append(n)
+        if not near:
+            out.append(Patch(mask, HYPOTHESIS_AXIS, n, float(mask.mean())))
+            have.append((n, None))
+            count += 1
+            continue
+        for m in near:
+            mask &= ~m
+        rests = [p.normal for p in out if p.axis == REST_AXIS]
+        if mask.any() and all(line_angle_deg(n, r) >= merge for r in rests):
+            out.append(Patch(mask, REST_AXIS, n, float(mask.mean())))
     return out

@@ -57,7 +57,12 @@ from rectified_colmap.eval.homography import (
 from rectified_colmap.features import Features
 from rectified_colmap.geometry import scaled_size
 from rectified_colmap.io.hloc_h5 import rootsift_unit
-from rectified_colmap.pipeline import image_planes, with_vanishing_points
+from rectified_colmap.pipeline import (
+    image_planes,
+    patches_with_room,
+    rest_patches,
+    with_vanishing_points,
+)
 from rectified_colmap.sift import Sift, plain_sift, rectified_features
 from rectified_colmap.views import plan_views
 from rectified_colmap_research.evaluation.homography_report import write_records_csv
@@ -72,10 +77,12 @@ MET_FRACTION = 0.1
 UNCAPPED = {"max_patch_side": 8192, "max_view_pixels_factor": 1e6}
 
 
-def image_views(gray, rgb, camera, normal, region, conf: ExtractConf, network, uncapped, rng):
-    """(views, views without a pixel budget or None) of one image: from the exact depth of
-    its true plane within its region (``network`` None) or from the network's depth with
-    the conf's vanishing points."""
+def image_views(
+    gray, rgb, camera, normal, region, plain_count, conf: ExtractConf, network, uncapped, rng
+):
+    """(views, views without a pixel budget or None) of one image where plain SIFT keeps
+    ``plain_count`` keypoints: from the exact depth of its true plane within its region
+    (``network`` None) or from the network's depth with the conf's vanishing points."""
     if network is None:
         w, h = scaled_size(camera.width, camera.height, conf.normals.work_max_size)
         depth = plane_depth(camera, normal, (h, w), region)
@@ -84,18 +91,18 @@ def image_views(gray, rgb, camera, normal, region, conf: ExtractConf, network, u
     planes, _ = image_planes(camera, depth, conf, rng, {})
     planes = with_vanishing_points(gray, camera, planes, conf, rng, {})
     shape = planes.labels.shape
+    patches = patches_with_room(planes.patches, plain_count, conf)
     budget = view_pixel_budget(gray.shape, conf)
     upright = conf.sift.upright  # as the pipeline: upright SIFT's views are not turned
-    views = plan_views(gray, camera, planes.patches, shape, conf.rectify, budget, upright)
+    views = plan_views(gray, camera, patches, shape, conf.rectify, budget, upright)
     if not uncapped:
         return views, None
     loose = dataclasses.replace(conf.rectify, **UNCAPPED)
-    return views, plan_views(gray, camera, planes.patches, shape, loose, 1e12, upright)
+    return views, plan_views(gray, camera, patches, shape, loose, 1e12, upright)
 
 
-def stage_features(gray, camera, conf: ExtractConf, views, uncapped, unlimited: int, sift):
-    """{stage: Features} of one image (module docstring)."""
-    plain = plain_sift(gray, conf.sift, sift)
+def stage_features(gray, camera, conf: ExtractConf, plain, views, uncapped, unlimited: int, sift):
+    """{stage: Features} of one image (module docstring) with plain SIFT's ``plain``."""
     border = conf.rectify.border
 
     def detect(vs, budgets):
@@ -111,11 +118,13 @@ def stage_features(gray, camera, conf: ExtractConf, views, uncapped, unlimited: 
         out["views_uncapped"] = Features.concatenate([plain, free])
     out["views"] = Features.concatenate([plain, detect(views, [unlimited] * len(views.rects))])
     areas = views.masks.sum((1, 2))
-    rect = detect(views, view_budgets(len(plain), areas, conf))
+    rest = rest_patches(views)
+    budgets = view_budgets(len(plain), areas, rest[[r.patch_index for r in views.rects]], conf)
+    rect = detect(views, budgets)
     out["budget"] = Features.concatenate([plain, rect])
     index, lookalike = rectified_candidates(rect, plain, conf.dedup)
     out["dedup"] = Features.concatenate([plain, rect.subset(index)])
-    keep = cut_to_room(rect, index, lookalike, len(plain), conf)
+    keep = cut_to_room(rect, index, lookalike | rest[rect.patch[index]], len(plain), conf)
     out["final"] = Features.concatenate([plain, rect.subset(keep)])
     return out
 
@@ -199,11 +208,12 @@ def main(argv=None) -> int:
             normal = np.asarray(q.info[f"normal{k}"], np.float64)
             region = q.region0 if k == 0 else q.region1
             rng = np.random.default_rng(0)
+            plain = plain_sift(gray, conf.sift, sift)
             views, uncapped = image_views(
-                gray, rgb, camera, normal, region, conf, network, args.uncapped, rng
+                gray, rgb, camera, normal, region, len(plain), conf, network, args.uncapped, rng
             )
             sets.append(view_set(camera, views.rects))
-            out = stage_features(gray, camera, conf, views, uncapped, args.unlimited, sift)
+            out = stage_features(gray, camera, conf, plain, views, uncapped, args.unlimited, sift)
             for s, f in out.items():
                 feats[s][name] = as_mapping(f)
                 half = str(q.info.get("split", "all"))

@@ -8,8 +8,9 @@ import pytest
 from rectified_colmap.camera import calibration_matrix, grid_rays, make_camera
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.config import ExtractConf, VpConf
-from rectified_colmap.geometry import line_angle_deg
+from rectified_colmap.geometry import axis_angle_rotation, line_angle_deg
 from rectified_colmap.pipeline import extract_image
+from rectified_colmap.planes import HYPOTHESIS_AXIS, REST_AXIS, Patch
 from rectified_colmap_research.synth.lines import project_segments
 from rectified_colmap.vp.hypotheses import (
     VanishingPoints,
@@ -125,13 +126,41 @@ def test_hypothesis_patches_cover_the_front_side_and_skip_existing():
     h, w = 40, 60
     rays = grid_rays(camera, w, h)
     conf = VpConf(line_hypotheses=2)
-    patches = hypothesis_patches(np.stack([n1, n2, n3]), camera, (h, w), [-n1 * 1.0], conf)
-    assert [p.axis for p in patches] == [-1, -1]  # n1 exists already (sign-free): skipped
+    existing = [Patch(np.ones((h, w), bool), 0, n1, 1.0)]
+    patches = hypothesis_patches(np.stack([n1, n2, n3]), camera, (h, w), existing, conf)
+    assert [p.axis for p in patches] == [HYPOTHESIS_AXIS] * 2  # n1: frontal, and it exists
     assert np.array_equal(patches[0].normal, n2) and np.array_equal(patches[1].normal, n3)
     for p in patches:
         assert np.array_equal(p.mask, rays @ p.normal < 0)
         assert p.area_frac == pytest.approx(p.mask.mean())
     assert hypothesis_patches(np.stack([n2]), camera, (h, w), [], VpConf(line_hypotheses=0)) == []
+
+
+def test_a_hypothesis_of_a_plane_held_in_part_covers_the_rest():
+    """A hypothesis within the merge angle of the image's patches of its orientation covers
+    the front-facing cells they do not (REST_AXIS), not counted against line_hypotheses;
+    a second hypothesis of that plane adds nothing; one over no cell left gives none."""
+    camera = cam()
+    h, w = 40, 60
+    rays = grid_rays(camera, w, h)
+    n2 = np.array([np.sin(np.deg2rad(70)), 0.0, -np.cos(np.deg2rad(70))])
+    n3 = np.array([0.0, np.sin(np.deg2rad(60)), -np.cos(np.deg2rad(60))])
+    tilted = axis_angle_rotation(np.array([0.0, 1.0, 0.0]), np.deg2rad(1.0)) @ n2  # 1 degree
+    near = np.zeros((h, w), bool)
+    near[:, : w // 3] = True  # the depth's patch: the plane's near third
+    existing = [Patch(near, 1, -tilted, near.mean())]  # the other sign: axes are sign-free
+    conf = VpConf(line_hypotheses=1)
+    normals = np.stack([n2, tilted, n3])
+    patches = hypothesis_patches(normals, camera, (h, w), existing, conf)
+    assert [p.axis for p in patches] == [REST_AXIS, HYPOTHESIS_AXIS]
+    rest, other = patches
+    np.testing.assert_array_equal(rest.normal, n2)
+    np.testing.assert_array_equal(rest.mask, (rays @ n2 < 0) & ~near)
+    assert 0 < rest.mask.sum() < (rays @ n2 < 0).sum()
+    np.testing.assert_array_equal(other.normal, n3)  # one hypothesis, as line_hypotheses says
+    whole = [Patch(np.ones((h, w), bool), 1, tilted, 1.0)]
+    patches = hypothesis_patches(normals, camera, (h, w), whole, conf)
+    assert [p.axis for p in patches] == [HYPOTHESIS_AXIS]  # nothing of n2's plane is left
 
 
 def test_pipeline_adds_the_plane_the_depth_missed():
