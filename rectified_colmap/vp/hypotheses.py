@@ -143,7 +143,8 @@ def hypothesis_patches(
 
     A hypothesis within conf.hypothesis_merge_angle_deg of existing patches (the depth's,
     oriented by the lines) covers the front-facing cells they do not, as a REST_AXIS patch,
-    not counted against conf.line_hypotheses. Such a patch often holds part of its plane
+    not counted against conf.line_hypotheses (the normals are read best first until that
+    many whole-image patches are found). Such a patch often holds part of its plane
     only (its near part, or what the network segmented as one surface; on generated extreme
     pairs the far part of a plane, seen at 78-85 degrees, where the other image's overlap
     lay, had no view). Its features come only in plain SIFT's unused budget
