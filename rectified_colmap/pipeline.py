@@ -100,11 +100,8 @@ def extract_image(
     planes = with_vanishing_points(gray, camera, planes, conf, rng, t)
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift, sift)
-    patches = patches_with_room(planes.patches, len(plain), conf)
     with timed(t, "homographies"):
-        pixels = view_pixel_budget(gray.shape, conf)
-        shape = planes.labels.shape
-        views = plan_views(gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright)
+        views = image_views(gray, camera, planes.patches, planes.labels.shape, len(plain), conf)
     result = ImageResult(
         Features.empty(),
         replace(planes, patches=views.patches),
@@ -202,10 +199,48 @@ def patches_with_room(patches: list[Patch], plain_count: int, conf: ExtractConf)
     return [p for p in patches if p.axis != REST_AXIS]
 
 
+def image_views(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    patches: list[Patch],
+    shape: tuple[int, int],
+    plain_count: int,
+    conf: ExtractConf,
+    pixel_budget: float | None = None,
+) -> ViewSet:
+    """The views (views.plan_views) of an image's plane ``patches`` on its (h, w) work grid
+    ``shape``, where plain SIFT keeps ``plain_count`` keypoints (``patches_with_room``),
+    within ``pixel_budget`` pixels (default: budget.view_pixel_budget)."""
+    patches = patches_with_room(patches, plain_count, conf)
+    pixels = view_pixel_budget(gray.shape, conf) if pixel_budget is None else pixel_budget
+    return plan_views(gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright)
+
+
 def rest_patches(views: ViewSet) -> np.ndarray:
     """(len(views.patches),) bool: which of the views' patches lie over the rest of a plane
     (REST_AXIS); index it by ``Rectification.patch_index`` or ``Features.patch``."""
     return np.array([p.axis == REST_AXIS for p in views.patches], bool)
+
+
+def view_sift_budgets(views: ViewSet, plain_count: int, conf: ExtractConf) -> np.ndarray:
+    """(len(views.rects),) SIFT budgets of the views where plain SIFT keeps ``plain_count``
+    keypoints (budget.view_budgets: the room shared by covered area, the views over the rest
+    of a plane in plain SIFT's unused part)."""
+    areas = views.masks.reshape(len(views.masks), -1).sum(1)
+    rest = rest_patches(views)[[r.patch_index for r in views.rects]]
+    return view_budgets(plain_count, areas, rest, conf)
+
+
+def rectified_to_keep(
+    rectified: Features, plain: Features, views: ViewSet, conf: ExtractConf
+) -> tuple[np.ndarray, np.ndarray]:
+    """(candidates, kept): indices into ``rectified`` (the features of ``views``) that twin
+    no plain feature (dedup.rectified_candidates), and those of them kept on top of
+    ``plain`` (budget.cut_to_room; look-alikes and the features of views over the rest of a
+    plane are the second tier)."""
+    index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
+    second = lookalike | rest_patches(views)[rectified.patch[index]]
+    return index, cut_to_room(rectified, index, second, len(plain), conf)
 
 
 def features_on_top(
@@ -223,17 +258,12 @@ def features_on_top(
     plane (planes.REST_AXIS) only in plain SIFT's unused budget
     (rectified_colmap.budget.cut_to_room)."""
     t = {} if t is None else t
-    areas = views.masks.reshape(len(views.masks), -1).sum(1)
-    rest = rest_patches(views)
-    budgets = view_budgets(len(plain), areas, rest[[r.patch_index for r in views.rects]], conf)
     parts = []
-    for rect, budget in zip(views.rects, budgets):
+    for rect, budget in zip(views.rects, view_sift_budgets(views, len(plain), conf)):
         with timed(t, "warps+sift_patches"):
             args = (int(budget), conf.sift, conf.rectify.border, sift)
             parts.append(rectified_features(gray, camera, rect, *args))
     with timed(t, "dedup"):
         rectified = Features.concatenate(parts)
-        index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
-        second = lookalike | rest[rectified.patch[index]]
-        keep = cut_to_room(rectified, index, second, len(plain), conf)
+        _, keep = rectified_to_keep(rectified, plain, views, conf)
         return Features.concatenate([plain, rectified.subset(keep)])

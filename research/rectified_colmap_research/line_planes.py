@@ -26,14 +26,18 @@ import numpy as np
 import pycolmap
 
 from rectified_colmap import camera as cam_utils
-from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.config import ExtractConf, VpConf
 from rectified_colmap.conventions import to_opencv_points
 from rectified_colmap.geometry import scaled_size
-from rectified_colmap.pipeline import ImageResult, add_plane_hypotheses, features_on_top, timed
+from rectified_colmap.pipeline import (
+    ImageResult,
+    add_plane_hypotheses,
+    features_on_top,
+    image_views,
+    timed,
+)
 from rectified_colmap.planes import Patch, PlaneResult
 from rectified_colmap.sift import plain_sift
-from rectified_colmap.views import plan_views
 from rectified_colmap.vp.fusion import VpResult, refine_directions
 
 
@@ -239,13 +243,10 @@ def extract_depth_free(
         )
         if conf.vp.line_hypotheses > 0:
             planes = add_plane_hypotheses(camera, planes, lines.segments, conf)
-    with timed(t, "homographies"):
-        pixels = view_pixel_budget(gray.shape, conf)
-        views = plan_views(
-            gray, camera, planes.patches, (h, w), conf.rectify, pixels, conf.sift.upright
-        )
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift)
+    with timed(t, "homographies"):
+        views = image_views(gray, camera, planes.patches, (h, w), len(plain), conf)
     feats = features_on_top(gray, camera, views, plain, conf, None, t) if views else plain
     planes = replace(planes, patches=views.patches)
     return ImageResult(feats, planes, views.rects, views.cover, None, t)

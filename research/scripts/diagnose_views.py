@@ -46,9 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rectified_colmap.budget import cut_to_room, view_budgets, view_pixel_budget
 from rectified_colmap.config import ExtractConf
-from rectified_colmap.dedup import rectified_candidates
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.homography import (
     HomographyConf,
@@ -59,12 +57,12 @@ from rectified_colmap.geometry import scaled_size
 from rectified_colmap.io.hloc_h5 import rootsift_unit
 from rectified_colmap.pipeline import (
     image_planes,
-    patches_with_room,
-    rest_patches,
+    image_views,
+    rectified_to_keep,
+    view_sift_budgets,
     with_vanishing_points,
 )
 from rectified_colmap.sift import Sift, plain_sift, rectified_features
-from rectified_colmap.views import plan_views
 from rectified_colmap_research.evaluation.homography_report import write_records_csv
 from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera, read_half
 from rectified_colmap_research.evaluation.oracle import plane_depth
@@ -77,7 +75,7 @@ MET_FRACTION = 0.1
 UNCAPPED = {"max_patch_side": 8192, "max_view_pixels_factor": 1e6}
 
 
-def image_views(
+def one_image_views(
     gray, rgb, camera, normal, region, plain_count, conf: ExtractConf, network, uncapped, rng
 ):
     """(views, views without a pixel budget or None) of one image where plain SIFT keeps
@@ -90,15 +88,12 @@ def image_views(
         depth = network(rgb, camera, "")
     planes, _ = image_planes(camera, depth, conf, rng, {})
     planes = with_vanishing_points(gray, camera, planes, conf, rng, {})
-    shape = planes.labels.shape
-    patches = patches_with_room(planes.patches, plain_count, conf)
-    budget = view_pixel_budget(gray.shape, conf)
-    upright = conf.sift.upright  # as the pipeline: upright SIFT's views are not turned
-    views = plan_views(gray, camera, patches, shape, conf.rectify, budget, upright)
+    args = (gray, camera, planes.patches, planes.labels.shape, plain_count)
+    views = image_views(*args, conf)
     if not uncapped:
         return views, None
-    loose = dataclasses.replace(conf.rectify, **UNCAPPED)
-    return views, plan_views(gray, camera, patches, shape, loose, 1e12, upright)
+    loose = dataclasses.replace(conf, rectify=dataclasses.replace(conf.rectify, **UNCAPPED))
+    return views, image_views(*args, loose, pixel_budget=1e12)
 
 
 def stage_features(gray, camera, conf: ExtractConf, plain, views, uncapped, unlimited: int, sift):
@@ -117,14 +112,10 @@ def stage_features(gray, camera, conf: ExtractConf, plain, views, uncapped, unli
         free = detect(uncapped, [unlimited] * len(uncapped.rects))
         out["views_uncapped"] = Features.concatenate([plain, free])
     out["views"] = Features.concatenate([plain, detect(views, [unlimited] * len(views.rects))])
-    areas = views.masks.sum((1, 2))
-    rest = rest_patches(views)
-    budgets = view_budgets(len(plain), areas, rest[[r.patch_index for r in views.rects]], conf)
-    rect = detect(views, budgets)
+    rect = detect(views, view_sift_budgets(views, len(plain), conf))
     out["budget"] = Features.concatenate([plain, rect])
-    index, lookalike = rectified_candidates(rect, plain, conf.dedup)
+    index, keep = rectified_to_keep(rect, plain, views, conf)
     out["dedup"] = Features.concatenate([plain, rect.subset(index)])
-    keep = cut_to_room(rect, index, lookalike | rest[rect.patch[index]], len(plain), conf)
     out["final"] = Features.concatenate([plain, rect.subset(keep)])
     return out
 
@@ -209,7 +200,7 @@ def main(argv=None) -> int:
             region = q.region0 if k == 0 else q.region1
             rng = np.random.default_rng(0)
             plain = plain_sift(gray, conf.sift, sift)
-            views, uncapped = image_views(
+            views, uncapped = one_image_views(
                 gray, rgb, camera, normal, region, len(plain), conf, network, args.uncapped, rng
             )
             sets.append(view_set(camera, views.rects))
