@@ -21,7 +21,8 @@ features unlike any plain one, then the look-alikes of plain features
 (rectified_colmap.dedup), but these only in the part of plain SIFT's budget its keypoints
 left unused (:func:`unused_room`), as the features of views over the rest of a plane
 (planes.REST_AXIS: a plane hypothesis over the cells the depth's patches of its
-orientation leave out). A look-alike can crowd a plain feature's match out of
+orientation leave out) and of blind views (planes.BLIND_AXIS: an image no estimate gave a
+view). A look-alike can crowd a plain feature's match out of
 the ratio test; where plain SIFT fills its budget (a textured photo, whose moderate pairs
 plain SIFT matches) none is kept, where it leaves budget unused (a small or sparse image, a
 strongly foreshortened view) they may fill what plain SIFT did not use."""
@@ -74,10 +75,10 @@ def rectified_room(plain_count: int, conf: ExtractConf) -> int:
 
 def unused_room(plain_count: int, conf: ExtractConf) -> int:
     """How many second-tier rectified keypoints (look-alikes of plain features, the features
-    of views over the rest of a plane: planes.REST_AXIS) may come on top of plain SIFT's
-    ``plain_count`` keypoints: the part of plain SIFT's budget ``sift.max_num_features`` its
-    keypoints left unused (0 where plain SIFT fills it, or with
-    ``dedup.lookalikes_in_unused_budget`` False)."""
+    of views over the rest of a plane or blind: planes.REST_AXIS, BLIND_AXIS) may come on
+    top of plain SIFT's ``plain_count`` keypoints: the part of plain SIFT's budget
+    ``sift.max_num_features`` its keypoints left unused (0 where plain SIFT fills it, or
+    with ``dedup.lookalikes_in_unused_budget`` False)."""
     if not conf.dedup.lookalikes_in_unused_budget:
         return 0
     return max(0, conf.sift.max_num_features - plain_count)
@@ -90,8 +91,8 @@ def cut_to_room(
     of ``feats[index]`` (the candidates, dedup.rectified_candidates), first those of the
     first tier (``second`` (K,) bool: False), largest major scales first, up to the room
     (``rectified_room``); then the second tier (look-alikes of plain features, features of
-    views over the rest of a plane), largest major scales first, up to the room left and at
-    most ``unused_room``."""
+    views over the rest of a plane and of blind views), largest major scales first, up to
+    the room left and at most ``unused_room``."""
     room = max(0, rectified_room(plain_count, conf))
     index, second = np.asarray(index), np.asarray(second, bool)
     first = largest_scales(feats, index[~second], room)
@@ -106,8 +107,8 @@ def view_budgets(
     """(n,) SIFT budgets of n rectified views covering ``areas`` (n,) work cells each, on an
     image where plain SIFT keeps ``plain_count`` keypoints: ``conf.sift.patch_budget_factor``
     x the room above plain SIFT (``rectified_room``), shared by area (``split_budget``);
-    the views over the rest of a plane (``rest`` (n,) bool) share that factor x the part of
-    the room they may fill (``unused_room``) instead."""
+    the second tier's views (over the rest of a plane, blind: ``rest`` (n,) bool) share
+    that factor x the part of the room they may fill (``unused_room``) instead."""
     rest = np.asarray(rest, bool)
     room = rectified_room(plain_count, conf)
     factor = conf.sift.patch_budget_factor

@@ -93,7 +93,7 @@ class DedupConf:
     max_scale_ratio: float = 1.5  # ...and scales within this factor
     max_plain_cosine: float = 0.9  # rectified features this similar to a plain one: look-alikes
     lookalikes_in_unused_budget: bool = True  # look-alikes (and the views over the rest of a
-    # plane) only in plain SIFT's unused budget (budget.unused_room); False: never
+    # plane, blind views) only in plain SIFT's unused budget (budget.unused_room); False: never
     extra_frac: float = 0.5  # rectified features on top: at most this x plain SIFT's budget
 
 
@@ -251,10 +251,11 @@ confs: dict[str, dict[str, Any]] = {
         "sift": {"max_num_features": 4096},
     },
     # exactly plain COLMAP SIFT, whatever the depth: no patch can pass, no vanishing points
-    # (no plane hypotheses), exact COLMAP calls
+    # (no plane hypotheses), no second tier (no blind views), exact COLMAP calls
     "sift": {
         "planes": {"min_area_frac": 2.0},
         "vp": {"enabled": False, "line_hypotheses": 0},
+        "dedup": {"lookalikes_in_unused_budget": False},
         "sift": {"coarse_first": False},
     },
 }

@@ -9,7 +9,8 @@ step and the others as they are.
 
 Guarantee: the output holds exactly plain COLMAP SIFT's features with the same options (the
 same call, the same budget), and rectified features on top; with no depth, or no usable
-plane, it is exactly plain SIFT.
+plane where plain SIFT fills its budget, it is exactly plain SIFT (where it leaves part
+unused, an image with no view gets blind ones: ``image_views``).
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import Features
 from .normals import depth_to_normals
-from .planes import REST_AXIS, Patch, PlaneResult, detect_planes
+from .planes import BLIND_AXIS, REST_AXIS, Patch, PlaneResult, detect_planes
 from .rectify import Rectification
 from .sift import Sift, plain_sift, rectified_features
-from .views import ViewSet, plan_views
+from .views import ViewSet, blind_patches, plan_views
 from .vp import (
     free_vanishing_points,
     hypothesis_patches,
@@ -44,6 +45,11 @@ from .vp import (
 from .vp.segments import Segments
 
 logger = logging.getLogger(__name__)
+
+SECOND_TIER_AXES = (REST_AXIS, BLIND_AXIS)
+"""Patches whose views' features come only in the part of plain SIFT's budget its own
+keypoints left unused (budget.view_budgets, budget.cut_to_room): over the rest of a plane
+and blind views."""
 
 
 @dataclass
@@ -192,11 +198,12 @@ def add_plane_hypotheses(
 
 def patches_with_room(patches: list[Patch], plain_count: int, conf: ExtractConf) -> list[Patch]:
     """The patches whose views may add features above plain SIFT's ``plain_count``
-    keypoints: those over the rest of a plane (REST_AXIS) only where plain SIFT left part
-    of its budget unused (budget.unused_room), the others always."""
+    keypoints: the second tier's (over the rest of a plane, blind: REST_AXIS, BLIND_AXIS)
+    only where plain SIFT left part of its budget unused (budget.unused_room), the others
+    always."""
     if unused_room(plain_count, conf) > 0:
         return patches
-    return [p for p in patches if p.axis != REST_AXIS]
+    return [p for p in patches if p.axis not in SECOND_TIER_AXES]
 
 
 def image_views(
@@ -210,16 +217,27 @@ def image_views(
 ) -> ViewSet:
     """The views (views.plan_views) of an image's plane ``patches`` on its (h, w) work grid
     ``shape``, where plain SIFT keeps ``plain_count`` keypoints (``patches_with_room``),
-    within ``pixel_budget`` pixels (default: budget.view_pixel_budget)."""
+    within ``pixel_budget`` pixels (default: budget.view_pixel_budget).
+
+    Where the patches give no view (the depth sees no oblique plane, the lines no
+    hypothesis) and plain SIFT left part of its budget unused, the image gets blind views
+    instead (views.blind_patches: ASIFT's tilts): the network calls many oblique planes
+    frontal, and an image with no view cannot meet an oblique one. They are second tier
+    (``second_tier_patches``); ``dedup.lookalikes_in_unused_budget`` false: none."""
     patches = patches_with_room(patches, plain_count, conf)
     pixels = view_pixel_budget(gray.shape, conf) if pixel_budget is None else pixel_budget
-    return plan_views(gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright)
+    args = (conf.rectify, pixels, conf.sift.upright)
+    views = plan_views(gray, camera, patches, shape, *args)
+    if views or unused_room(plain_count, conf) <= 0:
+        return views
+    return plan_views(gray, camera, list(patches) + blind_patches(camera, shape), shape, *args)
 
 
-def rest_patches(views: ViewSet) -> np.ndarray:
-    """(len(views.patches),) bool: which of the views' patches lie over the rest of a plane
-    (REST_AXIS); index it by ``Rectification.patch_index`` or ``Features.patch``."""
-    return np.array([p.axis == REST_AXIS for p in views.patches], bool)
+def second_tier_patches(views: ViewSet) -> np.ndarray:
+    """(len(views.patches),) bool: which of the views' patches are second tier (over the
+    rest of a plane or blind: SECOND_TIER_AXES); index it by ``Rectification.patch_index``
+    or ``Features.patch``."""
+    return np.array([p.axis in SECOND_TIER_AXES for p in views.patches], bool)
 
 
 def view_sift_budgets(views: ViewSet, plain_count: int, conf: ExtractConf) -> np.ndarray:
@@ -227,7 +245,7 @@ def view_sift_budgets(views: ViewSet, plain_count: int, conf: ExtractConf) -> np
     keypoints (budget.view_budgets: the room shared by covered area, the views over the rest
     of a plane in plain SIFT's unused part)."""
     areas = views.masks.reshape(len(views.masks), -1).sum(1)
-    rest = rest_patches(views)[[r.patch_index for r in views.rects]]
+    rest = second_tier_patches(views)[[r.patch_index for r in views.rects]]
     return view_budgets(plain_count, areas, rest, conf)
 
 
@@ -239,7 +257,7 @@ def rectified_to_keep(
     ``plain`` (budget.cut_to_room; look-alikes and the features of views over the rest of a
     plane are the second tier)."""
     index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
-    second = lookalike | rest_patches(views)[rectified.patch[index]]
+    second = lookalike | second_tier_patches(views)[rectified.patch[index]]
     return index, cut_to_room(rectified, index, second, len(plain), conf)
 
 

@@ -43,6 +43,10 @@ REST_AXIS = -2
 that the image's patches of its orientation (the depth's, oriented by the lines) do not
 cover (rectified_colmap.vp.hypotheses.hypothesis_patches). Its views' features come only
 in the part of plain SIFT's budget its keypoints left unused (rectified_colmap.budget)."""
+BLIND_AXIS = -3
+"""``Patch.axis`` of a blind view: a plane orientation sampled with no estimate behind it
+(rectified_colmap.views.blind_patches), for an image where no estimate gave a view.
+Second tier, as REST_AXIS; its view compresses instead of stretching (coarsest)."""
 
 
 @dataclass
@@ -50,7 +54,7 @@ class Patch:
     mask: np.ndarray
     """(h, w) bool at the normals' grid (work resolution)."""
     axis: int
-    """Index k of the dominant direction, or HYPOTHESIS_AXIS for a plane hypothesis."""
+    """Index k of the dominant direction, or HYPOTHESIS_AXIS / REST_AXIS / BLIND_AXIS."""
     normal: np.ndarray
     """(3,) unit normal of the patch: +-d_k, the sign of its label, facing the camera."""
     area_frac: float

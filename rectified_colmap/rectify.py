@@ -29,7 +29,7 @@ from . import camera as cam_utils
 from .config import RectifyConf, check_view_resolution
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
 from .geometry import singular_values_2x2, smallest_rotation
-from .planes import Patch
+from .planes import BLIND_AXIS, Patch
 
 logger = logging.getLogger(__name__)
 
@@ -250,14 +250,7 @@ def patch_view(
     Xv = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
     u = (Xv[0] / Xv[2], Xv[1] / Xv[2])
     if turn:
-        # the box of the cells is the box of their hull, whose corners are among each grid
-        # row's first and last kept cell (the map to the view is projective, all in front)
-        row = cells[kept] // gw
-        last = len(row) - 1 - np.unique(row[::-1], return_index=True)[1]
-        ends = np.concatenate([np.unique(row, return_index=True)[1], last])
-        Rz = fitting_roll(np.stack([u[0][ends], u[1][ends]], 1))
-        R = Rz @ R
-        u = (Rz[0, 0] * u[0] + Rz[0, 1] * u[1], Rz[1, 0] * u[0] + Rz[1, 1] * u[1])
+        R, u = _turned_to_fit(R, u, cells[kept] // gw)
     # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
     sel = np.linspace(0, len(kept) - 1, min(len(kept), _MAX_FOCAL_SAMPLES)).astype(np.int64)
     sample = cells[kept[sel]]
@@ -265,7 +258,10 @@ def patch_view(
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
     _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
     J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
-    f = view_focal(singular_values_2x2(J), conf.view_resolution)
+    # a blind view (no estimate) compresses, as ASIFT's tilt simulation: its orientation
+    # may be wrong, so it gets no more pixels than the image has there
+    rule = "coarsest" if patch.axis == BLIND_AXIS else conf.view_resolution
+    f = view_focal(singular_values_2x2(J), rule)
     if f is None:
         return None
     # Margin of half a work cell around the cell centres, in virtual normalised units.
@@ -279,6 +275,20 @@ def patch_view(
         lo=np.array([u[0].min(), u[1].min()]) - half,
         hi=np.array([u[0].max(), u[1].max()]) + half,
     )
+
+
+def _turned_to_fit(
+    R: np.ndarray, u: tuple[np.ndarray, np.ndarray], row: np.ndarray
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """(R, u) turned about the view's axis to the smallest box (``fitting_roll``): ``u`` the
+    kept cells' virtual coordinates (x, y), ``row`` (N,) their grid rows, in grid order.
+    The box of the cells is the box of their hull, whose corners are among each grid row's
+    first and last cell (the map to the view is projective, all in front)."""
+    last = len(row) - 1 - np.unique(row[::-1], return_index=True)[1]
+    ends = np.concatenate([np.unique(row, return_index=True)[1], last])
+    Rz = fitting_roll(np.stack([u[0][ends], u[1][ends]], 1))
+    u = (Rz[0, 0] * u[0] + Rz[0, 1] * u[1], Rz[1, 0] * u[0] + Rz[1, 1] * u[1])
+    return Rz @ R, u
 
 
 def fitting_roll(u: np.ndarray) -> np.ndarray:

@@ -11,6 +11,8 @@ budget, the work-grid cells each view covers and the first view covering each ce
 - ``patches_worth_rectifying``: near-frontal patches and small ones are left to plain SIFT;
 - ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
   hypotheses' views (orientations from lines err most);
+- ``blind_patches``: for an image where no estimate gave a view, orientations sampled as
+  ASIFT samples tilts (rectified_colmap.pipeline.image_views: the second tier);
 - ``rectifications_within_budget``: every view planned, then scaled down to the image's
   pixel budget, a multiple of its own pixels: each work cell of the image buys the same
   view pixels, shared among the views over it, so no view takes another's (``shared_cells``);
@@ -29,10 +31,20 @@ import pycolmap
 from . import camera as cam_utils
 from .config import RectifyConf
 from .geometry import axis_angle_rotation
-from .planes import HYPOTHESIS_AXIS, REST_AXIS, Patch
+from .planes import BLIND_AXIS, HYPOTHESIS_AXIS, REST_AXIS, Patch
 from .rectify import Rectification, finish_rectification, patch_view, view_camera
 
 logger = logging.getLogger(__name__)
+
+BLIND_TILTS = (2.0, 4.0)
+"""Tilts t = 1 / cos(viewing angle) of the blind views (``blind_patches``): 60 and 75.5
+degrees at the image centre. A factor of 2 apart, so every tilt from sqrt(2) to 4 sqrt(2)
+(45-80 degrees) is within sqrt(2) of one, the residual SIFT absorbs (ASIFT samples both
+images at sqrt(2) steps: sqrt(2) between the two; here one image may be plain)."""
+BLIND_LONGITUDE_STEP_DEG = 72.0
+"""Tilt directions of the blind views: ``BLIND_LONGITUDE_STEP_DEG`` / t apart, ASIFT's step
+(Morel and Yu, 2009), over all 360 degrees (through a perspective camera the two senses of
+a tilt are different views)."""
 
 MIN_VIEW_AREA_FRAC = 0.005
 """Patches whose textured cells cover less of the image than this get no view (as
@@ -287,3 +299,31 @@ def viewing_coverage(masks: np.ndarray) -> np.ndarray:
     for i in range(len(masks) - 1, -1, -1):
         cover[masks[i]] = i
     return cover
+
+
+def blind_patches(
+    camera: pycolmap.Camera,
+    shape: tuple[int, int],
+    tilts: tuple[float, ...] = BLIND_TILTS,
+    longitude_step_deg: float = BLIND_LONGITUDE_STEP_DEG,
+) -> list[Patch]:
+    """Whole-grid patches (BLIND_AXIS, masks of the (h, w) work grid ``shape``) of planes
+    sampled as ASIFT samples affine tilts, for an image where no estimate (depth, lines) gave
+    a view: for each tilt t, planes seen at arccos(1 / t) from the ray through the image
+    centre, tilted towards image directions phi = 0, s / t, 2 s / t, ... < 360 degrees
+    (s = ``longitude_step_deg``): 10 + 20 views with the defaults. Normals face the camera."""
+    h, w = shape
+    v = np.append(camera.cam_from_img(np.array([[camera.width, camera.height]]) / 2.0)[0], 1.0)
+    v /= np.linalg.norm(v)
+    e1 = np.array([1.0, 0.0, 0.0]) - v[0] * v  # the image's x, perpendicular to v
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(v, e1)
+    mask = np.ones((h, w), bool)
+    out = []
+    for t in tilts:
+        theta = np.arccos(1.0 / t)
+        for phi in np.deg2rad(np.arange(0.0, 360.0, longitude_step_deg / t)):
+            d = np.cos(phi) * e1 + np.sin(phi) * e2
+            normal = -np.cos(theta) * v + np.sin(theta) * d
+            out.append(Patch(mask, BLIND_AXIS, normal, 1.0))
+    return out

@@ -11,7 +11,7 @@ from rectified_colmap.config import ExtractConf
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.sift import detect_sift
 from rectified_colmap.pipeline import extract_image, timed
-from rectified_colmap.planes import Patch
+from rectified_colmap.planes import BLIND_AXIS, Patch
 from rectified_colmap.views import (
     TEXTURE_MARGIN,
     patches_worth_rectifying,
@@ -62,26 +62,43 @@ def texture():
     return textured_image(900, 900, 11)
 
 
-def test_no_depth_and_no_planes_give_exactly_plain_sift(texture):
+def test_no_depth_gives_exactly_plain_sift_no_plane_blind_views_on_top(texture):
+    """No depth: exactly plain SIFT. A depth with no usable plane: plain SIFT's features all
+    kept, and views only blind ones (BLIND_AXIS: plain SIFT leaves part of its budget unused
+    on this image); with the second tier off, exactly plain SIFT."""
     R, t = look_at([1, -4, 3], [0, 0, 0])
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
     plain = detect_sift(img)
+    assert len(plain) < ExtractConf().sift.max_num_features
     single = ExtractConf.from_dict(SINGLE_VIEW)
+    no_second = {**SINGLE_VIEW, "dedup": {"lookalikes_in_unused_budget": False}}
+    no_second = ExtractConf.from_dict(no_second)
+
+    def assert_plain(f):
+        np.testing.assert_array_equal(f.keypoints, plain.keypoints)
+        np.testing.assert_array_equal(f.descriptors, plain.descriptors)
+        np.testing.assert_array_equal(f.shapes, plain.shapes)
+
     for depth in (
         None,
         DepthMap(np.full((30, 40), np.nan)),  # no valid depth
         DepthMap(np.random.default_rng(0).uniform(1, 50, (90, 120))),
     ):  # noise
         res = extract_image(img, CAMERA, depth, single)
+        if depth is None:
+            assert not res.rectifications
+            assert_plain(res.features)
+        else:
+            assert res.rectifications
+            axes = {res.planes.patches[r.patch_index].axis for r in res.rectifications}
+            assert axes == {BLIND_AXIS}
+            assert_plain(res.features.subset(res.features.patch < 0))
+        res = extract_image(img, CAMERA, depth, no_second)
         assert not res.rectifications
-        np.testing.assert_array_equal(res.features.keypoints, plain.keypoints)
-        np.testing.assert_array_equal(res.features.descriptors, plain.descriptors)
-        np.testing.assert_array_equal(res.features.shapes, plain.shapes)
+        assert_plain(res.features)
         # the default may add views from vanishing points, on top of every plain feature
         out = extract_image(img, CAMERA, depth).features
-        kept = out.subset(out.patch < 0)
-        np.testing.assert_array_equal(kept.keypoints, plain.keypoints)
-        np.testing.assert_array_equal(kept.descriptors, plain.descriptors)
+        assert_plain(out.subset(out.patch < 0))
 
 
 def test_rectified_keypoints_lie_on_the_plane_consistently(texture):
@@ -193,8 +210,15 @@ def test_frontal_plane_is_left_to_plain_sift_oblique_one_is_rectified(texture):
     R, t = look_at([0.3, -0.2, 4.0], [0, 0, 0], up=(0, 1, 0))  # ~5 deg: near-frontal
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)
     res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
-    assert not res.rectifications
+    # the plane gets no view; where plain SIFT leaves budget unused, the image gets blind
+    # ones (the second tier), none without it
+    assert {res.planes.patches[r.patch_index].axis for r in res.rectifications} <= {BLIND_AXIS}
     plain = detect_sift(img)
+    kept = res.features.subset(res.features.patch < 0)
+    np.testing.assert_array_equal(kept.keypoints, plain.keypoints)
+    conf.dedup.lookalikes_in_unused_budget = False
+    res = extract_image(img, CAMERA, DepthMap(z, "metric"), conf)
+    assert not res.rectifications
     np.testing.assert_array_equal(res.features.keypoints, plain.keypoints)
     R, t = look_at([0.5, -5, 3.5], [0, 0, 0])  # ~55 deg
     img, z = plane_view(texture, 0.01, K, R, t, SIZE)

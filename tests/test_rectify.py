@@ -593,3 +593,94 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
         b = extract_image(img1, cam, None, conf).features  # plain SIFT
         counts.append(gt_consistent_matches(a, b, H01))
     assert counts[1] >= 3 * max(counts[0], 5), counts
+
+
+@pytest.mark.parametrize("name", ["PINHOLE", "OPENCV"])
+def test_blind_patches_sample_asift_tilts_exactly(name):
+    """Blind patches: for each tilt t, normals at exactly arccos(1 / t) from the ray through
+    the image centre, tilt directions 72 / t degrees apart over 360 (10 for t = 2, 20 for 4),
+    whole-grid masks, BLIND_AXIS; the view of one undoes a tilt t at the image centre: the
+    image -> view Jacobian there has singular values in the ratio t."""
+    from rectified_colmap.planes import BLIND_AXIS
+    from rectified_colmap.views import blind_patches
+
+    cam = camera(name)
+    out = blind_patches(cam, (GH, GW), (2.0, 4.0), 72.0)
+    assert len(out) == 10 + 20
+    c = np.array([[cam.width / 2.0, cam.height / 2.0]])
+    v = unit(np.append(cam.cam_from_img(c)[0], 1.0))
+    tilts = np.array([1.0 / -(p.normal @ v) for p in out])
+    np.testing.assert_allclose(tilts, [2.0] * 10 + [4.0] * 20, rtol=1e-12)
+    for group in (out[:10], out[10:]):  # consecutive directions equally spaced about v
+        d = [unit(p.normal - (p.normal @ v) * v) for p in group]
+        step = np.degrees([np.arccos(np.clip(a @ b, -1, 1)) for a, b in zip(d, d[1:] + d[:1])])
+        np.testing.assert_allclose(step, 360.0 / len(group), atol=1e-9)
+    assert all(p.axis == BLIND_AXIS and p.mask.shape == (GH, GW) and p.mask.all() for p in out)
+    # square pixels, principal point at the centre: the image plane is square to that ray
+    pinhole = make_camera("PINHOLE", [200.0, 200.0, W / 2, H / 2], W, H)
+    for p, t in zip(blind_patches(pinhole, (GH, GW), (2.0, 4.0), 72.0)[::10], (2.0, 4.0, 4.0)):
+        rect = plan_rectification(pinhole, p, 0, RectifyConf(max_viewing_angle_deg=89.0))
+        Hv = image_to_rectified_homography(pinhole, rect)
+        eps = 1e-3  # numeric Jacobian at the image centre
+        pts = np.array([[0, 0], [eps, 0], [0, eps]]) + c
+        q = np.c_[pts, np.ones(3)] @ Hv.T
+        q = q[:, :2] / q[:, 2:]
+        s = np.linalg.svd(np.stack([q[1] - q[0], q[2] - q[0]], 1) / eps, compute_uv=False)
+        assert s[0] / s[1] == pytest.approx(t, rel=1e-4)
+
+
+def test_blind_views_compress_as_asift():
+    """A blind patch's view compresses instead of stretching (view_resolution coarsest,
+    whatever the conf says): the median larger singular value of the image -> view Jacobian
+    is 1; a plane hypothesis of the same normal follows the conf (finest: the smaller is)."""
+    from rectified_colmap.planes import BLIND_AXIS
+    from rectified_colmap.rectify import patch_view
+
+    cam = camera("PINHOLE")
+    n = unit([-0.8, 0.15, -0.55])
+    conf = RectifyConf(view_resolution="finest")
+    blind = patch_view(cam, Patch(np.ones((GH, GW), bool), BLIND_AXIS, n, 1.0), conf)
+    hyp = patch_view(cam, Patch(np.ones((GH, GW), bool), HYPOTHESIS_AXIS, n, 1.0), conf)
+    coarse = patch_view(
+        cam,
+        Patch(np.ones((GH, GW), bool), HYPOTHESIS_AXIS, n, 1.0),
+        replace(conf, view_resolution="coarsest"),
+    )
+    assert blind.f == pytest.approx(coarse.f, rel=1e-12)
+    assert hyp.f > 1.5 * blind.f  # the hypothesis stretches: ~ the tilt more pixels per axis
+
+
+def test_blind_views_match_an_oblique_plane_the_depth_calls_frontal():
+    """The oblique shot (75 degrees) with a depth that says the plane is frontal (as the
+    network does on many oblique photos) and no lines: no view from the estimates, so the
+    image gets blind views (BLIND_AXIS), second tier, where plain SIFT left budget unused;
+    GT-consistent matches with the 20-degree shot at least twice plain SIFT's. Where plain
+    SIFT fills its budget, or with lookalikes_in_unused_budget off, the output is plain
+    SIFT's exactly."""
+    from rectified_colmap.config import ExtractConf
+    from rectified_colmap.depth import DepthMap
+    from rectified_colmap.pipeline import extract_image
+    from rectified_colmap.planes import BLIND_AXIS
+
+    cam, img0, img1, H01, _ = oblique_and_frontal_shots(75.0)
+    frontal = DepthMap(np.full((480, 640), 5.0, np.float32), "metric")
+    no_lines = {"vp": {"enabled": False, "line_hypotheses": 0}}
+    conf = ExtractConf.from_dict({**no_lines, "sift": {"max_num_features": 4000}})
+    b = extract_image(img1, cam, None, conf).features
+    plain = extract_image(img0, cam, None, conf).features
+    assert len(plain) < 4000  # part of plain SIFT's budget unused
+    res = extract_image(img0, cam, frontal, conf)
+    rects = res.rectifications
+    assert rects and all(res.planes.patches[r.patch_index].axis == BLIND_AXIS for r in rects)
+    kept = res.features.subset(res.features.patch < 0)
+    np.testing.assert_array_equal(kept.keypoints, plain.keypoints)
+    assert len(res.features) <= conf.sift.max_num_features  # second tier: unused part only
+    got, base = gt_consistent_matches(res.features, b, H01), gt_consistent_matches(plain, b, H01)
+    assert got >= 2 * max(base, 10), (got, base)  # 30 vs 4 here
+    base_conf = {**no_lines, "sift": {"max_num_features": 4000}}
+    full = {"sift": {"max_num_features": len(plain)}}
+    for off in (full, {"dedup": {"lookalikes_in_unused_budget": False}}):
+        c = ExtractConf.from_dict({**base_conf, **off})
+        out = extract_image(img0, cam, frontal, c)
+        assert not out.rectifications
+        np.testing.assert_array_equal(out.features.keypoints, plain.keypoints)

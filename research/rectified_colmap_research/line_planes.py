@@ -231,7 +231,8 @@ def extract_depth_free(
     """The package's pipeline for an image without depth, planes from lines alone
     (``depth_free_planes``), then plane hypotheses, views and features as in
     rectified_colmap.pipeline.extract_image. Without a confident frame and hypotheses:
-    exactly plain SIFT."""
+    exactly plain SIFT where it fills its budget, else blind views in its unused part
+    (pipeline.image_views)."""
     conf = conf or ExtractConf()
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     H, W = gray.shape

@@ -97,18 +97,28 @@ def test_depth_free_extraction_rectifies_patches_on_top_of_plain_sift(views):
 
 def test_depth_free_without_lines_is_exactly_plain_sift():
     """A scene without straight lines (blurred noise): no frame, so without plane
-    hypotheses (which need no frame) the output is exactly plain COLMAP SIFT."""
+    hypotheses (which need no frame) the output is exactly plain COLMAP SIFT, with blind
+    views (planes.BLIND_AXIS) on top only where plain SIFT left budget unused."""
+    from rectified_colmap.planes import BLIND_AXIS
+
     rng = np.random.default_rng(0)
     noise = cv2.GaussianBlur(rng.random((H, W)).astype(np.float32), (0, 0), 6)
     gray = np.uint8(np.clip((noise - noise.min()) / np.ptp(noise) * 255, 0, 255))
     camera = synth.pinhole_camera(W, H, 0.9 * W)
-    conf = ExtractConf.from_dict({"vp": {"line_hypotheses": 0}})
+    no_second = {"vp": {"line_hypotheses": 0}, "dedup": {"lookalikes_in_unused_budget": False}}
+    conf = ExtractConf.from_dict(no_second)
     assert manhattan_from_image(gray, camera, conf.vp).directions is None
     res = extract_depth_free(gray, camera, conf)
     plain = detect_sift(gray, conf.sift, conf.sift.max_num_features)
     assert not res.rectifications and not res.planes.patches
     np.testing.assert_array_equal(res.features.keypoints, plain.keypoints)
     np.testing.assert_array_equal(res.features.descriptors, plain.descriptors)
+    assert len(plain) < conf.sift.max_num_features  # so the default adds blind views
+    res = extract_depth_free(gray, camera, ExtractConf.from_dict({"vp": {"line_hypotheses": 0}}))
+    assert res.rectifications
+    assert {p.axis for p in res.planes.patches} == {BLIND_AXIS}
+    kept = res.features.subset(res.features.patch < 0)
+    np.testing.assert_array_equal(kept.keypoints, plain.keypoints)
 
 
 def test_manhattan_from_image_trusts_a_rendered_street():

@@ -166,7 +166,8 @@ def test_a_hypothesis_of_a_plane_held_in_part_covers_the_rest():
 def test_pipeline_adds_the_plane_the_depth_missed():
     """A facade with lines seen at ~65 degrees, given a wrong (frontal) normal map as a bad
     network would: with line_hypotheses the rectification uses the lines' plane; without,
-    the image gets plain SIFT (the frontal patch is not worth rectifying)."""
+    the image gets no view of a plane (the frontal patch is not worth rectifying), only
+    blind ones (planes.BLIND_AXIS: plain SIFT leaves budget unused here)."""
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     R, t = look_at([4.0, -2.0, 2.0], [0.0, 0.0, 0.0])
     img, depth = plane_view(facade_texture(), 8.0 / 512, K, R, t, (640, 480))
@@ -174,7 +175,7 @@ def test_pipeline_adds_the_plane_the_depth_missed():
     base = ExtractConf.from_dict({"vp": {"line_hypotheses": 0}})
     frontal = DepthMap(np.ones((240, 320), np.float32), "depth")  # a plane at z = 1: normal -z
     plain = extract_image(img, camera, frontal, base)
-    assert plain.rectifications == []
+    assert {plain.planes.patches[r.patch_index].axis for r in plain.rectifications} == {-3}
     conf = ExtractConf.from_dict({"vp": {"line_hypotheses": 2}})
     res = extract_image(img, camera, frontal, conf)
     n_true = R @ np.array([0.0, 0.0, 1.0])
