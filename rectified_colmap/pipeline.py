@@ -242,8 +242,8 @@ def second_tier_patches(views: ViewSet) -> np.ndarray:
 
 def view_sift_budgets(views: ViewSet, plain_count: int, conf: ExtractConf) -> np.ndarray:
     """(len(views.rects),) SIFT budgets of the views where plain SIFT keeps ``plain_count``
-    keypoints (budget.view_budgets: the room shared by covered area, the views over the rest
-    of a plane in plain SIFT's unused part)."""
+    keypoints (budget.view_budgets: the room shared by covered area, the second tier's views
+    in plain SIFT's unused part)."""
     areas = views.masks.reshape(len(views.masks), -1).sum(1)
     rest = second_tier_patches(views)[[r.patch_index for r in views.rects]]
     return view_budgets(plain_count, areas, rest, conf)
@@ -254,8 +254,8 @@ def rectified_to_keep(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(candidates, kept): indices into ``rectified`` (the features of ``views``) that twin
     no plain feature (dedup.rectified_candidates), and those of them kept on top of
-    ``plain`` (budget.cut_to_room; look-alikes and the features of views over the rest of a
-    plane are the second tier)."""
+    ``plain`` (budget.cut_to_room; look-alikes and the features of the second tier's views,
+    ``second_tier_patches``, come last)."""
     index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
     second = lookalike | second_tier_patches(views)[rectified.patch[index]]
     return index, cut_to_room(rectified, index, second, len(plain), conf)
@@ -272,8 +272,8 @@ def features_on_top(
 ) -> Features:
     """``plain`` (plain SIFT of the whole image, all kept) plus the rectified features of the
     views that twin no plain one (rectified_colmap.dedup), at most the budget's room above
-    plain SIFT; look-alikes of plain features and the features of views over the rest of a
-    plane (planes.REST_AXIS) only in plain SIFT's unused budget
+    plain SIFT; look-alikes of plain features and the features of the second tier's views
+    (SECOND_TIER_AXES: over the rest of a plane, blind) only in plain SIFT's unused budget
     (rectified_colmap.budget.cut_to_room)."""
     t = {} if t is None else t
     parts = []

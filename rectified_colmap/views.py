@@ -313,8 +313,8 @@ def blind_patches(
     centre, tilted towards image directions phi = 0, s / t, 2 s / t, ... < 360 degrees
     (s = ``longitude_step_deg``): 10 + 20 views with the defaults. Normals face the camera."""
     h, w = shape
-    v = np.append(camera.cam_from_img(np.array([[camera.width, camera.height]]) / 2.0)[0], 1.0)
-    v /= np.linalg.norm(v)
+    v = cam_utils.image_to_rays(camera, [camera.width / 2.0, camera.height / 2.0])[0]
+    v /= np.linalg.norm(v)  # the ray through the image centre (COLMAP pixels)
     e1 = np.array([1.0, 0.0, 0.0]) - v[0] * v  # the image's x, perpendicular to v
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(v, e1)
