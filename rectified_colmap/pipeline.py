@@ -4,13 +4,14 @@
 chain of the stages, each in its own module (disparity, normals, planes, vp, views and
 rectify, sift, dedup, budget). It is pure (no I/O) and single-threaded, so callers may run
 it in worker processes. Its steps are public functions too (``image_planes``,
-``with_vanishing_points``, ``features_on_top``), so that a tool can run a variant of one
-step and the others as they are.
+``with_vanishing_points``, ``views_and_features``, ``features_on_top``), so that a tool can
+run a variant of one step and the others as they are.
 
 Guarantee: the output holds exactly plain COLMAP SIFT's features with the same options (the
 same call, the same budget), and rectified features on top; with no depth, or no usable
 plane where plain SIFT fills its budget, it is exactly plain SIFT (where it leaves part
-unused, an image with no view gets blind ones: ``image_views``).
+unused, an image with no view, or views that add almost nothing, gets blind ones:
+``views_and_features``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,13 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .budget import cut_to_room, unused_room, view_budgets, view_pixel_budget
+from .budget import (
+    cut_to_room,
+    unused_room,
+    view_budgets,
+    view_pixel_budget,
+    wants_blind_views,
+)
 from .config import ExtractConf
 from .dedup import rectified_candidates
 from .depth import DepthMap
@@ -34,7 +41,7 @@ from .normals import depth_to_normals
 from .planes import BLIND_AXIS, REST_AXIS, Patch, PlaneResult, detect_planes
 from .rectify import Rectification
 from .sift import Sift, plain_sift, rectified_features
-from .views import ViewSet, blind_patches, plan_views
+from .views import ViewSet, blind_patches, joined_views, plan_views
 from .vp import (
     free_vanishing_points,
     hypothesis_patches,
@@ -106,18 +113,10 @@ def extract_image(
     planes = with_vanishing_points(gray, camera, planes, conf, rng, t)
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift, sift)
-    with timed(t, "homographies"):
-        views = image_views(gray, camera, planes.patches, planes.labels.shape, len(plain), conf)
-    result = ImageResult(
-        Features.empty(),
-        replace(planes, patches=views.patches),
-        views.rects,
-        views.cover,
-        normals,
-        t,
-    )
-    result.features = features_on_top(gray, camera, views, plain, conf, sift, t) if views else plain
-    return result
+    shape = planes.labels.shape
+    views, features = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift, t)
+    planes = replace(planes, patches=views.patches)
+    return ImageResult(features, planes, views.rects, views.cover, normals, t)
 
 
 def image_planes(
@@ -217,20 +216,45 @@ def image_views(
 ) -> ViewSet:
     """The views (views.plan_views) of an image's plane ``patches`` on its (h, w) work grid
     ``shape``, where plain SIFT keeps ``plain_count`` keypoints (``patches_with_room``),
-    within ``pixel_budget`` pixels (default: budget.view_pixel_budget).
-
-    Where the patches give no view (the depth sees no oblique plane, the lines no
-    hypothesis) and plain SIFT left part of its budget unused, the image gets blind views
-    instead (views.blind_patches: ASIFT's tilts): the network calls many oblique planes
-    frontal, and an image with no view cannot meet an oblique one. They are second tier
-    (``second_tier_patches``); ``dedup.lookalikes_in_unused_budget`` false: none."""
+    within ``pixel_budget`` pixels (default: budget.view_pixel_budget)."""
     patches = patches_with_room(patches, plain_count, conf)
     pixels = view_pixel_budget(gray.shape, conf) if pixel_budget is None else pixel_budget
-    args = (conf.rectify, pixels, conf.sift.upright)
-    views = plan_views(gray, camera, patches, shape, *args)
-    if views or unused_room(plain_count, conf) <= 0:
-        return views
-    return plan_views(gray, camera, list(patches) + blind_patches(camera, shape), shape, *args)
+    return plan_views(gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright)
+
+
+def views_and_features(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    patches: list[Patch],
+    shape: tuple[int, int],
+    plain: Features,
+    conf: ExtractConf,
+    sift: Sift | None = None,
+    t: dict[str, float] | None = None,
+) -> tuple[ViewSet, Features]:
+    """(views, features) of an image with plane ``patches`` on its (h, w) work grid
+    ``shape`` and plain SIFT's features ``plain``: the views of the patches
+    (``image_views``) and their features on top of ``plain`` (``features_on_top``).
+
+    Where these views add almost nothing (budget.wants_blind_views: no view, or views of a
+    wrong estimate over blank or blurred pixels) and plain SIFT left part of its budget
+    unused, the image gets blind views beside them (views.blind_patches: ASIFT's tilts,
+    planned with the image's whole pixel budget, second tier): the network calls many
+    oblique planes frontal, and an image with no working view cannot meet an oblique one.
+    ``dedup.lookalikes_in_unused_budget`` false: no blind views."""
+    t = {} if t is None else t
+    with timed(t, "homographies"):
+        views = image_views(gray, camera, patches, shape, len(plain), conf)
+    rectified = view_features(gray, camera, views, len(plain), conf, sift, t)
+    features = with_rectified(plain, rectified, views, conf, t)
+    if not wants_blind_views(len(features) - len(plain), len(plain), conf):
+        return views, features
+    with timed(t, "homographies"):
+        blind = image_views(gray, camera, blind_patches(camera, shape), shape, len(plain), conf)
+    more = view_features(gray, camera, blind, len(plain), conf, sift, t)
+    more.patch[more.patch >= 0] += len(views.patches)
+    views = joined_views(views, blind)
+    return views, with_rectified(plain, Features.concatenate([rectified, more]), views, conf, t)
 
 
 def second_tier_patches(views: ViewSet) -> np.ndarray:
@@ -244,7 +268,7 @@ def view_sift_budgets(views: ViewSet, plain_count: int, conf: ExtractConf) -> np
     """(len(views.rects),) SIFT budgets of the views where plain SIFT keeps ``plain_count``
     keypoints (budget.view_budgets: the room shared by covered area, the second tier's views
     in plain SIFT's unused part)."""
-    areas = views.masks.reshape(len(views.masks), -1).sum(1)
+    areas = views.masks.sum((1, 2))
     rest = second_tier_patches(views)[[r.patch_index for r in views.rects]]
     return view_budgets(plain_count, areas, rest, conf)
 
@@ -271,17 +295,45 @@ def features_on_top(
     t: dict[str, float] | None = None,
 ) -> Features:
     """``plain`` (plain SIFT of the whole image, all kept) plus the rectified features of the
-    views that twin no plain one (rectified_colmap.dedup), at most the budget's room above
-    plain SIFT; look-alikes of plain features and the features of the second tier's views
-    (SECOND_TIER_AXES: over the rest of a plane, blind) only in plain SIFT's unused budget
-    (rectified_colmap.budget.cut_to_room)."""
+    views (``view_features``) that twin no plain one (rectified_colmap.dedup), at most the
+    budget's room above plain SIFT; look-alikes of plain features and the features of the
+    second tier's views (SECOND_TIER_AXES: over the rest of a plane, blind) only in plain
+    SIFT's unused budget (``with_rectified``, rectified_colmap.budget.cut_to_room)."""
+    rectified = view_features(gray, camera, views, len(plain), conf, sift, t)
+    return with_rectified(plain, rectified, views, conf, t)
+
+
+def view_features(
+    gray: np.ndarray,
+    camera: pycolmap.Camera,
+    views: ViewSet,
+    plain_count: int,
+    conf: ExtractConf,
+    sift: Sift | None = None,
+    t: dict[str, float] | None = None,
+) -> Features:
+    """The rectified features of every view (sift.rectified_features, each within its SIFT
+    budget: ``view_sift_budgets``), ``Features.patch`` indexing ``views.patches``."""
     t = {} if t is None else t
-    parts = []
-    for rect, budget in zip(views.rects, view_sift_budgets(views, len(plain), conf)):
+    parts = [Features.empty()]
+    for rect, budget in zip(views.rects, view_sift_budgets(views, plain_count, conf)):
         with timed(t, "warps+sift_patches"):
             args = (int(budget), conf.sift, conf.rectify.border, sift)
             parts.append(rectified_features(gray, camera, rect, *args))
-    with timed(t, "dedup"):
-        rectified = Features.concatenate(parts)
+    return Features.concatenate(parts)
+
+
+def with_rectified(
+    plain: Features,
+    rectified: Features,
+    views: ViewSet,
+    conf: ExtractConf,
+    t: dict[str, float] | None = None,
+) -> Features:
+    """``plain`` and the features of ``rectified`` (those of ``views``) kept on top of it
+    (``rectified_to_keep``)."""
+    with timed({} if t is None else t, "dedup"):
+        if not len(rectified):
+            return plain
         _, keep = rectified_to_keep(rectified, plain, views, conf)
         return Features.concatenate([plain, rectified.subset(keep)])

@@ -11,8 +11,9 @@ budget, the work-grid cells each view covers and the first view covering each ce
 - ``patches_worth_rectifying``: near-frontal patches and small ones are left to plain SIFT;
 - ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
   hypotheses' views (orientations from lines err most);
-- ``blind_patches``: for an image where no estimate gave a view, orientations sampled as
-  ASIFT samples tilts (rectified_colmap.pipeline.image_views: the second tier);
+- ``blind_patches``: for an image where no estimate gave a working view, orientations
+  sampled as ASIFT samples tilts (rectified_colmap.pipeline.views_and_features: the second
+  tier), planned apart and ``joined_views`` beside the estimates' views;
 - ``rectifications_within_budget``: every view planned, then scaled down to the image's
   pixel budget, a multiple of its own pixels: each work cell of the image buys the same
   view pixels, shared among the views over it, so no view takes another's (``shared_cells``);
@@ -22,7 +23,7 @@ budget, the work-grid cells each view covers and the first view covering each ce
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -90,6 +91,15 @@ def plan_views(
     rects = rectifications_within_budget(camera, patches, todo, conf, pixel_budget, not upright)
     masks = viewing_masks(camera, rects, patches, shape, conf.max_viewing_angle_deg)
     return ViewSet(patches, rects, masks, viewing_coverage(masks))
+
+
+def joined_views(a: ViewSet, b: ViewSet) -> ViewSet:
+    """The views of ``a`` and of ``b`` (planned apart, on the same work grid) as one
+    ViewSet: ``b``'s patches after ``a``'s, its ``Rectification.patch_index`` shifted."""
+    k = len(a.patches)
+    rects = list(a.rects) + [replace(r, patch_index=r.patch_index + k) for r in b.rects]
+    masks = np.concatenate([a.masks, b.masks])
+    return ViewSet(list(a.patches) + list(b.patches), rects, masks, viewing_coverage(masks))
 
 
 def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:

@@ -6,6 +6,7 @@ import pytest
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.budget import (
+    BLIND_YIELD_FRAC,
     OPENCV_VIEW_PIXELS_RATIO,
     cut_to_room,
     largest_scales,
@@ -14,6 +15,7 @@ from rectified_colmap.budget import (
     unused_room,
     view_budgets,
     view_pixel_budget,
+    wants_blind_views,
 )
 from rectified_colmap.config import DedupConf, ExtractConf, merge_conf
 from rectified_colmap.sift import opencv_views
@@ -371,3 +373,18 @@ def test_views_run_by_opencv_sift_get_their_own_pixel_factor():
         off = ExtractConf.from_dict(merge_conf(conf.to_dict(), {"sift": other}))
         assert not opencv_views((480, 640), off.sift)
         assert view_pixel_budget((480, 640), off) == 2.0 * 640 * 480
+
+
+def test_blind_views_where_the_views_add_at_most_a_fraction_of_plain_sift():
+    """budget.wants_blind_views: where the views of the estimates added at most
+    BLIND_YIELD_FRAC x plain SIFT's keypoints (none where there is no view), and only where
+    plain SIFT left part of its budget unused (the blind views are second tier)."""
+    conf = ExtractConf()
+    conf.sift.max_num_features = 1000
+    most = int(BLIND_YIELD_FRAC * 800)
+    assert wants_blind_views(0, 800, conf) and wants_blind_views(most, 800, conf)
+    assert not wants_blind_views(most + 1, 800, conf)
+    assert wants_blind_views(0, 0, conf)  # no plain feature, no view: blind views
+    assert not wants_blind_views(0, 1000, conf) and not wants_blind_views(0, 1200, conf)
+    conf.dedup.lookalikes_in_unused_budget = False
+    assert not wants_blind_views(0, 800, conf)

@@ -684,3 +684,56 @@ def test_blind_views_match_an_oblique_plane_the_depth_calls_frontal():
         out = extract_image(img0, cam, frontal, c)
         assert not out.rectifications
         np.testing.assert_array_equal(out.features.keypoints, plain.keypoints)
+
+
+def test_views_that_add_almost_nothing_are_planned_again_with_blind_views(monkeypatch):
+    """pipeline.views_and_features: the 75-degree shot's view from its true normal adds many
+    rectified features, and the image gets no blind view; a view of a small part of the
+    plane adds at most budget.BLIND_YIELD_FRAC x plain SIFT's count (the case of a view of a wrong
+    estimate), and the image is planned again with the blind views beside it (second tier:
+    plain SIFT kept exactly, within its unused budget) and matches the 20-degree shot with
+    more GT-consistent matches. No second tier (lookalikes_in_unused_budget off): the views
+    of the estimates alone."""
+    from rectified_colmap import budget as budget_module
+    from rectified_colmap.config import ExtractConf
+    from rectified_colmap.geometry import scaled_size
+    from rectified_colmap.pipeline import extract_image, views_and_features
+    from rectified_colmap.planes import BLIND_AXIS
+    from rectified_colmap.sift import plain_sift
+
+    cam, img0, img1, H01, n_true = oblique_and_frontal_shots(75.0)
+    conf = ExtractConf.from_dict({"sift": {"max_num_features": 4000}})
+    b = extract_image(img1, cam, None, conf).features
+    plain = plain_sift(img0, conf.sift)
+    assert len(plain) < 4000  # part of plain SIFT's budget unused
+    w, h = scaled_size(640, 480, conf.normals.work_max_size)
+    small = np.zeros((h, w), bool)  # 1 / 64 of the image, right of the centre
+    small[h * 5 // 12 : h * 13 // 24, w * 5 // 8 : w * 3 // 4] = True
+
+    def run(mask, c):
+        views, feats = views_and_features(
+            img0, cam, [Patch(mask, 0, n_true, 1.0)], (h, w), plain, c
+        )
+        blind = {views.patches[r.patch_index].axis == BLIND_AXIS for r in views.rects}
+        np.testing.assert_array_equal(feats.subset(feats.patch < 0).keypoints, plain.keypoints)
+        return views, feats, blind
+
+    _, whole, blind = run(np.ones((h, w), bool), conf)
+    assert blind == {False} and len(whole) - len(plain) > budget_module.BLIND_YIELD_FRAC * len(
+        plain
+    )
+    views, feats, blind = run(small, conf)
+    assert blind == {False, True}  # the small view and the blind ones
+    second = np.isin(feats.patch, [i for i, p in enumerate(views.patches) if p.axis == BLIND_AXIS])
+    assert 0 < second.sum() <= budget_module.unused_room(len(plain), conf)  # second tier
+    c = ExtractConf.from_dict({"sift": {"max_num_features": 4000}})
+    c.dedup.lookalikes_in_unused_budget = False
+    _, alone, blind_off = run(small, c)
+    assert blind_off == {False}
+    added = len(alone) - len(plain)
+    assert 0 < added <= budget_module.BLIND_YIELD_FRAC * len(plain), added
+    got, base = gt_consistent_matches(feats, b, H01), gt_consistent_matches(alone, b, H01)
+    assert got >= 2 * max(base, 10), (got, base)
+    # the switch itself: a yield counted as almost nothing re-plans the whole plane's view
+    monkeypatch.setattr(budget_module, "BLIND_YIELD_FRAC", 1e9)
+    assert run(np.ones((h, w), bool), conf)[2] == {False, True}

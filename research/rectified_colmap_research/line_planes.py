@@ -32,9 +32,8 @@ from rectified_colmap.geometry import scaled_size
 from rectified_colmap.pipeline import (
     ImageResult,
     add_plane_hypotheses,
-    features_on_top,
-    image_views,
     timed,
+    views_and_features,
 )
 from rectified_colmap.planes import Patch, PlaneResult
 from rectified_colmap.sift import plain_sift
@@ -232,7 +231,7 @@ def extract_depth_free(
     (``depth_free_planes``), then plane hypotheses, views and features as in
     rectified_colmap.pipeline.extract_image. Without a confident frame and hypotheses:
     exactly plain SIFT where it fills its budget, else blind views in its unused part
-    (pipeline.image_views)."""
+    (pipeline.views_and_features)."""
     conf = conf or ExtractConf()
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     H, W = gray.shape
@@ -246,8 +245,6 @@ def extract_depth_free(
             planes = add_plane_hypotheses(camera, planes, lines.segments, conf)
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift)
-    with timed(t, "homographies"):
-        views = image_views(gray, camera, planes.patches, (h, w), len(plain), conf)
-    feats = features_on_top(gray, camera, views, plain, conf, None, t) if views else plain
+    views, feats = views_and_features(gray, camera, planes.patches, (h, w), plain, conf, None, t)
     planes = replace(planes, patches=views.patches)
     return ImageResult(feats, planes, views.rects, views.cover, None, t)

@@ -60,8 +60,11 @@ from rectified_colmap.pipeline import (
     image_views,
     rectified_to_keep,
     view_sift_budgets,
+    views_and_features,
     with_vanishing_points,
 )
+from rectified_colmap.planes import BLIND_AXIS
+from rectified_colmap.views import blind_patches, joined_views
 from rectified_colmap.sift import Sift, plain_sift, rectified_features
 from rectified_colmap_research.evaluation.homography_report import write_records_csv
 from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera, read_half
@@ -76,11 +79,13 @@ UNCAPPED = {"max_patch_side": 8192, "max_view_pixels_factor": 1e6}
 
 
 def one_image_views(
-    gray, rgb, camera, normal, region, plain_count, conf: ExtractConf, network, uncapped, rng
+    gray, rgb, camera, normal, region, plain, conf: ExtractConf, network, uncapped, rng, sift
 ):
-    """(views, views without a pixel budget or None) of one image where plain SIFT keeps
-    ``plain_count`` keypoints: from the exact depth of its true plane within its region
-    (``network`` None) or from the network's depth with the conf's vanishing points."""
+    """(views, views without a pixel budget or None) of one image with plain SIFT's
+    features ``plain`` (pipeline.views_and_features: blind views where the others add
+    almost nothing; the uncapped views likewise): from the exact depth of its true plane
+    within its region (``network`` None) or from the network's depth with the conf's
+    vanishing points."""
     if network is None:
         w, h = scaled_size(camera.width, camera.height, conf.normals.work_max_size)
         depth = plane_depth(camera, normal, (h, w), region)
@@ -88,12 +93,18 @@ def one_image_views(
         depth = network(rgb, camera, "")
     planes, _ = image_planes(camera, depth, conf, rng, {})
     planes = with_vanishing_points(gray, camera, planes, conf, rng, {})
-    args = (gray, camera, planes.patches, planes.labels.shape, plain_count)
-    views = image_views(*args, conf)
+    shape = planes.labels.shape
+    views, _ = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift)
     if not uncapped:
         return views, None
     loose = dataclasses.replace(conf, rectify=dataclasses.replace(conf.rectify, **UNCAPPED))
-    return views, image_views(*args, loose, pixel_budget=1e12)
+    free = image_views(gray, camera, planes.patches, shape, len(plain), loose, 1e12)
+    if any(p.axis == BLIND_AXIS for p in views.patches):
+        blind = image_views(
+            gray, camera, blind_patches(camera, shape), shape, len(plain), loose, 1e12
+        )
+        free = joined_views(free, blind)
+    return views, free
 
 
 def stage_features(gray, camera, conf: ExtractConf, plain, views, uncapped, unlimited: int, sift):
@@ -201,7 +212,7 @@ def main(argv=None) -> int:
             rng = np.random.default_rng(0)
             plain = plain_sift(gray, conf.sift, sift)
             views, uncapped = one_image_views(
-                gray, rgb, camera, normal, region, len(plain), conf, network, args.uncapped, rng
+                gray, rgb, camera, normal, region, plain, conf, network, args.uncapped, rng, sift
             )
             sets.append(view_set(camera, views.rects))
             out = stage_features(gray, camera, conf, plain, views, uncapped, args.unlimited, sift)
