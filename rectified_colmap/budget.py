@@ -21,8 +21,9 @@ features unlike any plain one, then the look-alikes of plain features
 (rectified_colmap.dedup), but these only in the part of plain SIFT's budget its keypoints
 left unused (:func:`unused_room`), as the features of views over the rest of a plane
 (planes.REST_AXIS: a plane hypothesis over the cells the depth's patches of its
-orientation leave out) and of blind views (planes.BLIND_AXIS: an image no estimate gave a
-view). A look-alike can crowd a plain feature's match out of
+orientation leave out); blind views' features (planes.BLIND_AXIS: an image whose estimates
+gave no view that adds features) come after all of these, in what is left
+(:func:`blind_room`). A look-alike can crowd a plain feature's match out of
 the ratio test; where plain SIFT fills its budget (a textured photo, whose moderate pairs
 plain SIFT matches) none is kept, where it leaves budget unused (a small or sparse image, a
 strongly foreshortened view) they may fill what plain SIFT did not use."""
@@ -103,6 +104,15 @@ def wants_blind_views(added: int, plain_count: int, conf: ExtractConf) -> bool:
     return unused_room(plain_count, conf) > 0 and added <= BLIND_YIELD_FRAC * plain_count
 
 
+def blind_room(count: int, plain_count: int, conf: ExtractConf) -> int:
+    """How many blind-view keypoints may come on top of an image's ``count`` features (plain
+    SIFT's ``plain_count`` and the rectified ones of its other views, all kept): what is
+    left both of the rectified room (``rectified_room``) and of plain SIFT's budget
+    ``sift.max_num_features`` (the blind views only fill what nothing else used)."""
+    room = rectified_room(plain_count, conf) - (count - plain_count)
+    return max(0, min(room, conf.sift.max_num_features - count))
+
+
 def cut_to_room(
     feats: Features, index: np.ndarray, second: np.ndarray, plain_count: int, conf: ExtractConf
 ) -> np.ndarray:
@@ -110,8 +120,8 @@ def cut_to_room(
     of ``feats[index]`` (the candidates, dedup.rectified_candidates), first those of the
     first tier (``second`` (K,) bool: False), largest major scales first, up to the room
     (``rectified_room``); then the second tier (look-alikes of plain features, features of
-    views over the rest of a plane and of blind views), largest major scales first, up to
-    the room left and at most ``unused_room``."""
+    views over the rest of a plane), largest major scales first, up to the room left and at
+    most ``unused_room``."""
     room = max(0, rectified_room(plain_count, conf))
     index, second = np.asarray(index), np.asarray(second, bool)
     first = largest_scales(feats, index[~second], room)

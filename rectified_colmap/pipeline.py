@@ -26,7 +26,9 @@ import numpy as np
 import pycolmap
 
 from .budget import (
+    blind_room,
     cut_to_room,
+    largest_scales,
     unused_room,
     view_budgets,
     view_pixel_budget,
@@ -239,8 +241,9 @@ def views_and_features(
     Where these views add almost nothing (budget.wants_blind_views: no view, or views of a
     wrong estimate over blank or blurred pixels) and plain SIFT left part of its budget
     unused, the image gets blind views beside them (views.blind_patches: ASIFT's tilts,
-    planned with the image's whole pixel budget, second tier): the network calls many
-    oblique planes frontal, and an image with no working view cannot meet an oblique one.
+    planned with the image's whole pixel budget), whose features come on top of all the
+    others (``blind_on_top``: none of those changes): the network calls many oblique planes
+    frontal, and an image with no working view cannot meet an oblique one.
     ``dedup.lookalikes_in_unused_budget`` false: no blind views."""
     t = {} if t is None else t
     with timed(t, "homographies"):
@@ -253,8 +256,25 @@ def views_and_features(
         blind = image_views(gray, camera, blind_patches(camera, shape), shape, len(plain), conf)
     more = view_features(gray, camera, blind, len(plain), conf, sift, t)
     more.patch[more.patch >= 0] += len(views.patches)
-    views = joined_views(views, blind)
-    return views, with_rectified(plain, Features.concatenate([rectified, more]), views, conf, t)
+    with timed(t, "dedup"):
+        features = blind_on_top(features, more, len(plain), conf)
+    return joined_views(views, blind), features
+
+
+def blind_on_top(
+    features: Features, blind: Features, plain_count: int, conf: ExtractConf
+) -> Features:
+    """``features`` (plain SIFT's ``plain_count`` and the rectified features kept on top,
+    all kept as they are) and the features of the blind views ``blind`` that twin none of
+    them (dedup.rectified_candidates, every kept feature counted as plain: it always wins),
+    largest major scales first, look-alikes of kept features last, at most
+    budget.blind_room."""
+    kept = replace(features, patch=np.full(len(features), -1, features.patch.dtype))
+    index, lookalike = rectified_candidates(blind, kept, conf.dedup)
+    room = blind_room(len(features), plain_count, conf)
+    first = largest_scales(blind, index[~lookalike], room)
+    later = largest_scales(blind, index[lookalike], room - len(first))
+    return Features.concatenate([features, blind.subset(np.sort(np.r_[first, later]))])
 
 
 def second_tier_patches(views: ViewSet) -> np.ndarray:

@@ -388,3 +388,37 @@ def test_blind_views_where_the_views_add_at_most_a_fraction_of_plain_sift():
     assert not wants_blind_views(0, 1000, conf) and not wants_blind_views(0, 1200, conf)
     conf.dedup.lookalikes_in_unused_budget = False
     assert not wants_blind_views(0, 800, conf)
+
+
+def test_blind_features_come_on_top_of_every_kept_feature_within_what_is_left():
+    """pipeline.blind_on_top: the kept features stay as they are (first, the same rows); a
+    blind feature twinning a kept one (plain or rectified) is dropped; the others come
+    within budget.blind_room, the largest major scales first."""
+    from rectified_colmap.budget import blind_room
+    from rectified_colmap.pipeline import blind_on_top
+
+    conf = ExtractConf()
+    conf.sift.max_num_features = 10  # rectified room 5
+    rng = np.random.default_rng(0)
+
+    def feats(xy, scale, patch):
+        n = len(xy)
+        d = rng.integers(0, 255, (n, 128)).astype(np.uint8)
+        return Features(
+            np.asarray(xy, float),
+            scale * np.tile(np.eye(2), (n, 1, 1)),
+            d,
+            np.full(n, patch, np.int32),
+        )
+
+    plain = feats(np.c_[np.arange(6) * 20.0, np.zeros(6)], 2.0, -1)
+    rect = feats([[0.0, 50.0]], 2.0, 0)
+    kept = Features.concatenate([plain, rect])  # 7 kept: 3 left of plain SIFT's budget
+    assert blind_room(7, 6, conf) == 3 and blind_room(11, 6, conf) == 0
+    twin = feats([[0.0, 50.0]], 2.0, 1)
+    twin.descriptors[:] = rect.descriptors  # the rectified feature's twin
+    others = feats([[300.0, 300.0], [400.0, 300.0], [500.0, 300.0], [600.0, 300.0]], 1.0, 1)
+    others.shapes[:, 0, 0] = [1.0, 4.0, 3.0, 2.0]  # major scales 1, 4, 3, 2
+    out = blind_on_top(kept, Features.concatenate([twin, others]), 6, conf)
+    np.testing.assert_array_equal(out.keypoints[:7], kept.keypoints)
+    np.testing.assert_array_equal(out.keypoints[7:, 0], [400.0, 500.0, 600.0])
