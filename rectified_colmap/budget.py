@@ -86,14 +86,14 @@ def unused_room(plain_count: int, conf: ExtractConf) -> int:
 
 
 BLIND_YIELD_FRAC = 0.125
-"""An image's views are planned again with the blind ones (views.blind_patches) where the
-views of its estimates add at most this x plain SIFT's keypoints on top of them
-(``wants_blind_views``): a view of a wrong estimate (a plane called frontal seen at 74
-degrees, a view over blank or blurred pixels) adds almost nothing, and blocked the blind
-views, which came only where no view was planned. Chosen on the choose halves of two sets
-of generated extreme pairs (2026-12-06, research log) among 0, 1/8, 1/4, 1/2 and 1: 1/8, 1/4
-and 1/2 solved the most pairs and cases, 1/8 with the fewest images re-planned (none of the
-eight 640x480 fountain images; at 1/2 one, at 1 four)."""
+"""An image gets the blind views (views.blind_patches) beside its other views where those
+add at most this x plain SIFT's keypoints on top of them (``wants_blind_views``): a view of
+a wrong estimate (a plane called frontal seen at 74 degrees, a view over blank or blurred
+pixels) adds almost nothing, and blocked the blind views, which came only where no view
+was planned. Chosen on the choose halves of two sets of generated extreme pairs
+(2026-12-06, stop 58, research log) among 0, 1/8, 1/4, 1/2 and 1: all but 0 solved the
+most pairs and cases, 1/8 with the fewest images re-planned (none of the eight 640x480
+fountain images; at 1/2 one, at 1 four)."""
 
 
 def wants_blind_views(added: int, plain_count: int, conf: ExtractConf) -> bool:
