@@ -19,7 +19,8 @@ GT-consistent matches):
 - ``budget``: the views' SIFT budgets (rectified_colmap.budget.view_budgets);
 - ``dedup``: without twins of plain features (dedup.rectified_candidates);
 - ``final``: cut to the room above plain SIFT, look-alikes of plain features only in its
-  unused budget (budget.cut_to_room): the pipeline's output.
+  unused budget (budget.cut_to_room), blind views' features on top
+  (pipeline.blind_on_top): the pipeline's output (pipeline.views_and_features).
 
 Orientation (``--orientation``): ``true`` gives each image the exact depth of its plane
 where the plane is seen (the pair file's ``normal0``/``normal1`` and regions, as a depth
@@ -81,11 +82,11 @@ UNCAPPED = {"max_patch_side": 8192, "max_view_pixels_factor": 1e6}
 def one_image_views(
     gray, rgb, camera, normal, region, plain, conf: ExtractConf, network, uncapped, rng, sift
 ):
-    """(views, views without a pixel budget or None) of one image with plain SIFT's
-    features ``plain`` (pipeline.views_and_features: blind views where the others add
-    almost nothing; the uncapped views likewise): from the exact depth of its true plane
-    within its region (``network`` None) or from the network's depth with the conf's
-    vanishing points."""
+    """(views, views without a pixel budget or None, the pipeline's features) of one image
+    with plain SIFT's features ``plain`` (pipeline.views_and_features: blind views where
+    the others add almost nothing; the uncapped views likewise): from the exact depth of its
+    true plane within its region (``network`` None) or from the network's depth with the
+    conf's vanishing points."""
     if network is None:
         w, h = scaled_size(camera.width, camera.height, conf.normals.work_max_size)
         depth = plane_depth(camera, normal, (h, w), region)
@@ -94,9 +95,9 @@ def one_image_views(
     planes, _ = image_planes(camera, depth, conf, rng, {})
     planes = with_vanishing_points(gray, camera, planes, conf, rng, {})
     shape = planes.labels.shape
-    views, _ = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift)
+    views, final = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift)
     if not uncapped:
-        return views, None
+        return views, None, final
     loose = dataclasses.replace(conf, rectify=dataclasses.replace(conf.rectify, **UNCAPPED))
     free = image_views(gray, camera, planes.patches, shape, len(plain), loose, 1e12)
     if any(p.axis == BLIND_AXIS for p in views.patches):
@@ -104,11 +105,16 @@ def one_image_views(
             gray, camera, blind_patches(camera, shape), shape, len(plain), loose, 1e12
         )
         free = joined_views(free, blind)
-    return views, free
+    return views, free, final
 
 
-def stage_features(gray, camera, conf: ExtractConf, plain, views, uncapped, unlimited: int, sift):
-    """{stage: Features} of one image (module docstring) with plain SIFT's ``plain``."""
+def stage_features(
+    gray, camera, conf: ExtractConf, plain, views, uncapped, final, unlimited: int, sift
+):
+    """{stage: Features} of one image (module docstring) with plain SIFT's ``plain``;
+    ``final``: the pipeline's output (pipeline.views_and_features: the blind views'
+    features come on top of the others, pipeline.blind_on_top, which the stages before
+    count as any second-tier view's)."""
     border = conf.rectify.border
 
     def detect(vs, budgets):
@@ -125,9 +131,9 @@ def stage_features(gray, camera, conf: ExtractConf, plain, views, uncapped, unli
     out["views"] = Features.concatenate([plain, detect(views, [unlimited] * len(views.rects))])
     rect = detect(views, view_sift_budgets(views, len(plain), conf))
     out["budget"] = Features.concatenate([plain, rect])
-    index, keep = rectified_to_keep(rect, plain, views, conf)
+    index, _ = rectified_to_keep(rect, plain, views, conf)
     out["dedup"] = Features.concatenate([plain, rect.subset(index)])
-    out["final"] = Features.concatenate([plain, rect.subset(keep)])
+    out["final"] = final
     return out
 
 
@@ -211,11 +217,13 @@ def main(argv=None) -> int:
             region = q.region0 if k == 0 else q.region1
             rng = np.random.default_rng(0)
             plain = plain_sift(gray, conf.sift, sift)
-            views, uncapped = one_image_views(
+            views, uncapped, final = one_image_views(
                 gray, rgb, camera, normal, region, plain, conf, network, args.uncapped, rng, sift
             )
             sets.append(view_set(camera, views.rects))
-            out = stage_features(gray, camera, conf, plain, views, uncapped, args.unlimited, sift)
+            out = stage_features(
+                gray, camera, conf, plain, views, uncapped, final, args.unlimited, sift
+            )
             for s, f in out.items():
                 feats[s][name] = as_mapping(f)
                 half = str(q.info.get("split", "all"))
