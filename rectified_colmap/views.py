@@ -7,7 +7,8 @@ appended), their ``Rectification``s (rectified_colmap.rectify) within the image'
 budget, the work-grid cells each view covers and the first view covering each cell.
 
 - ``textured_patches``: each patch cut to its textured cells, so that no view spends pixels
-  on sky, blank walls or what lies around a plane;
+  on sky, blank walls or what lies around a plane, nor on specks of noise there
+  (``without_specks``);
 - ``patches_worth_rectifying``: near-frontal patches and small ones are left to plain SIFT;
 - ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
   hypotheses' views (orientations from lines err most);
@@ -49,7 +50,8 @@ a tilt are different views)."""
 
 MIN_VIEW_AREA_FRAC = 0.005
 """Patches whose textured cells cover less of the image than this get no view (as
-planes.min_area_frac drops smaller components)."""
+planes.min_area_frac drops smaller components), and textured regions smaller than this
+widen no view (``without_specks``)."""
 TEXTURE_MARGIN = 2
 """Work cells around a textured cell that a view keeps (``textured_patches``)."""
 
@@ -131,15 +133,30 @@ def textured_patches(gray: np.ndarray, patches: list[Patch], min_texture: float)
     """Each patch cut to its textured cells: ``texture_map`` >= ``min_texture``, dilated by
     TEXTURE_MARGIN cells (a feature's support reaches past a textured cell). A view then
     spends no pixels on sky, blank walls or what lies around a plane, and a plane seen in a
-    small part of a mostly blank image still gets its view. Indices are kept (a patch may
-    end up empty)."""
+    small part of a mostly blank image still gets its view. Textured regions too small for
+    a view of their own (``without_specks``: specks of noise in a sky or a grey background)
+    are left out: a speck near a plane's horizon, where the view stretches the image most,
+    widened the view's box many times over (one of 40x on a generated pair), and the pixel
+    budget then took the resolution of the whole view. Indices are kept (a patch may end up
+    empty)."""
     if not patches:
         return patches
     textured = texture_map(gray, patches[0].mask.shape) >= min_texture
     k = 2 * TEXTURE_MARGIN + 1
     textured = cv2.dilate(textured.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    textured = without_specks(textured, MIN_VIEW_AREA_FRAC)
     masks = [p.mask & textured for p in patches]
     return [Patch(m, p.axis, p.normal, float(m.mean())) for p, m in zip(patches, masks)]
+
+
+def without_specks(mask: np.ndarray, min_frac: float) -> np.ndarray:
+    """(h, w) bool ``mask`` without its 8-connected components of fewer than ``min_frac``
+    x its cells (in ``textured_patches``: MIN_VIEW_AREA_FRAC, the size a patch needs for a
+    view of its own, so a region dropped here could not have had one)."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_frac * mask.size
+    keep[0] = False
+    return keep[labels]
 
 
 def tilt_neighbours(

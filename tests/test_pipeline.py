@@ -12,11 +12,14 @@ from rectified_colmap.depth import DepthMap
 from rectified_colmap.sift import detect_sift
 from rectified_colmap.pipeline import extract_image, timed
 from rectified_colmap.planes import BLIND_AXIS, Patch
+from rectified_colmap.rectify import patch_view
 from rectified_colmap.views import (
+    MIN_VIEW_AREA_FRAC,
     TEXTURE_MARGIN,
     patches_worth_rectifying,
     textured_patches,
     viewing_angles,
+    without_specks,
 )
 from tests.conftest import look_at, plane_view, textured_image
 from tests.scenes import SINGLE_VIEW
@@ -202,6 +205,45 @@ def test_viewing_angles_texture_masks_and_which_patches_get_views():
     blank = np.full((SIZE[1], SIZE[0]), 128, np.uint8)
     assert not textured_patches(blank, patches, 5.0)[0].mask.any()
     assert patches_worth_rectifying(CAMERA, textured_patches(blank, patches, 5.0), conf) == []
+
+
+def test_without_specks_drops_components_too_small_for_a_view_of_their_own():
+    mask = np.zeros((40, 50), bool)  # 2000 cells: MIN_VIEW_AREA_FRAC x 2000 = 10
+    mask[2:4, 2:7] = True  # 10 cells: kept
+    mask[10:13, 10:13] = True  # 9 cells: dropped
+    mask[20, 20] = mask[21, 21] = mask[22, 22] = mask[23, 23] = mask[24, 24] = True
+    mask[25:30, 25] = True  # 10 cells joined by a corner (8-connected): kept
+    kept = without_specks(mask, MIN_VIEW_AREA_FRAC)
+    expected = mask.copy()
+    expected[10:13, 10:13] = False
+    np.testing.assert_array_equal(kept, expected)
+    assert not without_specks(np.zeros((4, 4), bool), 0.1).any()
+
+
+def test_texture_specks_do_not_widen_a_view():
+    # a textured left half on a blank right half with a few specks of noise: a view of a
+    # steep plane over the whole image keeps the textured half only, as large as without
+    # the specks (a speck near the plane's horizon would have widened its box: views of
+    # generated pairs grew 40x over specks of background noise, then lost their
+    # resolution to the pixel budget); the work grid of the depth network (1.25 px cells)
+    h, w = 288, 384
+    img = textured_image(SIZE[1], SIZE[0], 3)
+    img[:, SIZE[0] // 2 :] = 128
+    clean = img.copy()
+    for x, y in [(300, 40), (340, 200), (455, 330), (440, 90)]:
+        img[y : y + 4, x : x + 4] = 255
+    steep = np.array([np.sin(1.2), 0.0, -np.cos(1.2)])  # 69 deg, the right half farther
+    whole = [Patch(np.ones((h, w), bool), 0, steep, 1.0)]
+    cut = textured_patches(img, whole, min_texture=5.0)[0]
+    np.testing.assert_array_equal(cut.mask, textured_patches(clean, whole, 5.0)[0].mask)
+    assert w // 2 <= np.flatnonzero(cut.mask.any(0)).max() <= w // 2 + TEXTURE_MARGIN
+    conf = ExtractConf().rectify
+    view = patch_view(CAMERA, cut, conf)
+    speckled = cut.mask.copy()
+    speckled[156:166, 268:278] = True  # the speck at (340, 200), dilated, as kept before
+    wide = patch_view(CAMERA, Patch(speckled, 0, steep, 1.0), conf)
+    box = np.prod(view.hi - view.lo) * view.f**2
+    assert np.prod(wide.hi - wide.lo) * wide.f**2 > 3 * box
 
 
 def test_frontal_plane_is_left_to_plain_sift_oblique_one_is_rectified(texture):
