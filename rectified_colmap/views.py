@@ -152,7 +152,8 @@ def textured_patches(gray: np.ndarray, patches: list[Patch], min_texture: float)
 def without_specks(mask: np.ndarray, min_frac: float) -> np.ndarray:
     """(h, w) bool ``mask`` without its 8-connected components of fewer than ``min_frac``
     x its cells (in ``textured_patches``: MIN_VIEW_AREA_FRAC, the size a patch needs for a
-    view of its own, so a region dropped here could not have had one)."""
+    view: a region this small could not have one alone; a plane whose texture lies only in
+    such islands, farther apart than TEXTURE_MARGIN, loses them too)."""
     _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     keep = stats[:, cv2.CC_STAT_AREA] >= min_frac * mask.size
     keep[0] = False
