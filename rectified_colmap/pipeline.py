@@ -248,13 +248,13 @@ def views_and_features(
     t = {} if t is None else t
     with timed(t, "homographies"):
         views = image_views(gray, camera, patches, shape, len(plain), conf)
-    rectified = view_features(gray, camera, views, len(plain), conf, sift, t)
+    rectified = views_features(gray, camera, views, len(plain), conf, sift, t)
     features = with_rectified(plain, rectified, views, conf, t)
     if not wants_blind_views(len(features) - len(plain), len(plain), conf):
         return views, features
     with timed(t, "homographies"):
         blind = image_views(gray, camera, blind_patches(camera, shape), shape, len(plain), conf)
-    more = view_features(gray, camera, blind, len(plain), conf, sift, t)
+    more = views_features(gray, camera, blind, len(plain), conf, sift, t)
     more.patch[more.patch >= 0] += len(views.patches)
     with timed(t, "dedup"):
         features = blind_on_top(features, more, len(plain), conf)
@@ -315,15 +315,15 @@ def features_on_top(
     t: dict[str, float] | None = None,
 ) -> Features:
     """``plain`` (plain SIFT of the whole image, all kept) plus the rectified features of the
-    views (``view_features``) that twin no plain one (rectified_colmap.dedup), at most the
+    views (``views_features``) that twin no plain one (rectified_colmap.dedup), at most the
     budget's room above plain SIFT; look-alikes of plain features and the features of the
     second tier's views (SECOND_TIER_AXES: over the rest of a plane, blind) only in plain
     SIFT's unused budget (``with_rectified``, rectified_colmap.budget.cut_to_room)."""
-    rectified = view_features(gray, camera, views, len(plain), conf, sift, t)
+    rectified = views_features(gray, camera, views, len(plain), conf, sift, t)
     return with_rectified(plain, rectified, views, conf, t)
 
 
-def view_features(
+def views_features(
     gray: np.ndarray,
     camera: pycolmap.Camera,
     views: ViewSet,
@@ -332,8 +332,10 @@ def view_features(
     sift: Sift | None = None,
     t: dict[str, float] | None = None,
 ) -> Features:
-    """The rectified features of every view (sift.rectified_features, each within its SIFT
-    budget: ``view_sift_budgets``), ``Features.patch`` indexing ``views.patches``."""
+    """The rectified features of every view of ``views`` in image pixels
+    (sift.rectified_features, each within its SIFT budget: ``view_sift_budgets``),
+    ``Features.patch`` indexing ``views.patches``. (sift.view_features is one view's, in
+    its own pixels.)"""
     t = {} if t is None else t
     parts = [Features.empty()]
     for rect, budget in zip(views.rects, view_sift_budgets(views, plain_count, conf)):
