@@ -40,7 +40,7 @@ from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import Features
 from .normals import depth_to_normals
-from .planes import BLIND_AXIS, REST_AXIS, Patch, PlaneResult, detect_planes
+from .planes import BLIND_AXIS, HYPOTHESIS_AXIS, REST_AXIS, Patch, PlaneResult, detect_planes
 from .rectify import Rectification
 from .sift import Sift, plain_sift, rectified_features
 from .views import ViewSet, blind_patches, joined_views, plan_views
@@ -59,6 +59,16 @@ SECOND_TIER_AXES = (REST_AXIS, BLIND_AXIS)
 """Patches whose views' features come only in the part of plain SIFT's budget its own
 keypoints left unused (budget.view_budgets, budget.cut_to_room): over the rest of a plane
 and blind views."""
+
+UNUSED_BUDGET_AXES = (*SECOND_TIER_AXES, HYPOTHESIS_AXIS)
+"""Patches that get views only where plain SIFT left part of its budget unused
+(``patches_with_room``): the second tier's and the whole-image plane hypotheses of the
+vanishing points (their tilt neighbours share the axis). Where plain SIFT fills its budget
+only the depth's planes get views: there, on the photo-collection pairs, the hypotheses'
+views (guesses over the whole image, each at under half its resolution) added matches
+half of them wrong and 3-4x worse located than plain SIFT's, and the poses lost to them
+(research log, stop 60). Where the budget has room (small images, as the generated and
+evd-dev pairs) their features stay first tier."""
 
 
 @dataclass
@@ -199,12 +209,12 @@ def add_plane_hypotheses(
 
 def patches_with_room(patches: list[Patch], plain_count: int, conf: ExtractConf) -> list[Patch]:
     """The patches whose views may add features above plain SIFT's ``plain_count``
-    keypoints: the second tier's (over the rest of a plane, blind: REST_AXIS, BLIND_AXIS)
-    only where plain SIFT left part of its budget unused (budget.unused_room), the others
-    always."""
+    keypoints: the second tier's (over the rest of a plane, blind) and the plane hypotheses
+    (``UNUSED_BUDGET_AXES``) only where plain SIFT left part of its budget unused
+    (budget.unused_room), the depth's planes always."""
     if unused_room(plain_count, conf) > 0:
         return patches
-    return [p for p in patches if p.axis not in SECOND_TIER_AXES]
+    return [p for p in patches if p.axis not in UNUSED_BUDGET_AXES]
 
 
 def image_views(

@@ -189,8 +189,9 @@ def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
 
 
 def test_views_over_the_rest_of_a_plane_only_fill_plain_sifts_unused_budget():
-    """The views over the rest of a plane (REST_AXIS) get no patch where plain SIFT fills
-    its budget (the other views exactly as without them), and else a SIFT budget of
+    """The views over the rest of a plane (REST_AXIS) and of the plane hypotheses
+    (HYPOTHESIS_AXIS) get no patch where plain SIFT fills its budget (the depth's views
+    exactly as without them); the rest views else get a SIFT budget of
     patch_budget_factor x the part of the room plain SIFT left unused, shared by area."""
     conf = ExtractConf()
     conf.sift.max_num_features = 100  # room = 50; SIFT budgets 2 x what views may add
@@ -209,9 +210,10 @@ def test_views_over_the_rest_of_a_plane_only_fill_plain_sifts_unused_budget():
     normal = np.array([0.6, 0.0, -0.8])
     patches = [Patch(mask, a, normal, 1.0) for a in (0, HYPOTHESIS_AXIS, REST_AXIS)]
     assert patches_with_room(patches, 99, conf) == patches
-    assert patches_with_room(patches, 100, conf) == patches[:2]
+    # where plain SIFT fills its budget the plane hypotheses get no view either
+    assert patches_with_room(patches, 100, conf) == patches[:1]
     conf.dedup.lookalikes_in_unused_budget = False  # the switch: no second tier at all
-    assert patches_with_room(patches, 0, conf) == patches[:2]
+    assert patches_with_room(patches, 0, conf) == patches[:1]
 
 
 def test_the_cut_keeps_the_largest_major_scales_within_the_cap():

@@ -11,8 +11,10 @@ where the depth network's normals are tens of degrees off (docs/vp.md, "Plane hy
 Each hypothesis becomes one whole-image patch (every work cell that sees the plane from the
 front, as vp.line_planes.whole_image_patches): the rectification's viewing-angle crop keeps
 the cells near its vanishing line out, dedup keeps one feature per location, and the
-budget stays the image's. Hypotheses are not tested for chance (a wrong one costs budget,
-not correctness: it is one more synthesised view, as in ASIFT). A hypothesis of a plane the
+budget stays the image's. Hypotheses are not tested for chance (a wrong one costs budget:
+it is one more synthesised view, as in ASIFT). Where plain SIFT fills its budget they get
+no view (pipeline.UNUSED_BUDGET_AXES): there their features, over the whole image at a
+fraction of its resolution, cost pose accuracy on moderate pairs. A hypothesis of a plane the
 image's patches already hold in part covers the rest of that plane (planes.REST_AXIS; its
 features only in plain SIFT's unused budget, rectified_colmap.budget).
 
