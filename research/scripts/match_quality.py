@@ -30,7 +30,7 @@ import numpy as np
 
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.config import EvalConf
-from rectified_colmap.eval.matching import match_ratio
+from rectified_colmap.eval.matching import FeatureSource, match_ratio
 from rectified_colmap.eval.pairs import Pair, read_pairs_with_gt
 from rectified_colmap.eval.relpose import (
     FAILED_DEG,
@@ -126,15 +126,12 @@ def kind_table(records: list[dict], threshold: float) -> list[str]:
 
 @lru_cache(maxsize=8)
 def read_features(path: Path, name: str) -> dict[str, np.ndarray]:
-    """One image's keypoints (N, 2) COLMAP px, descriptors (N, D) float32 (as
-    eval.matching.FeatureSource gives them) and image ``scales`` (N,) (NaN where the file
-    has none) from an hloc file, read once."""
-    d = read(path, name)
-    kp = d["keypoints"]
-    desc = np.ascontiguousarray(np.asarray(d["descriptors"], np.float32).T)
-    s = d.get("scales")
-    scales = np.full(len(kp), np.nan) if s is None else np.asarray(s, np.float64)
-    return {"keypoints": kp, "descriptors": desc, "scales": scales}
+    """One image's ``keypoints`` and ``descriptors`` as eval.matching.FeatureSource gives
+    them, and its image ``scales`` (N,) (NaN where the file has none), read once."""
+    d = FeatureSource(path)[name]
+    s = read(path, name).get("scales")
+    d["scales"] = np.full(len(d["keypoints"]), np.nan) if s is None else np.asarray(s, float)
+    return d
 
 
 def main(argv=None) -> int:

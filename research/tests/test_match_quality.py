@@ -1,5 +1,6 @@
 """research/scripts/match_quality.py: matches sorted by the features they join (plain
-SIFT's first), on a scene whose correspondences and errors are known exactly."""
+SIFT's, found exactly in the baseline's file, or added), on a scene whose correspondences
+and errors are known exactly."""
 
 import numpy as np
 import pytest
