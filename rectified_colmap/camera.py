@@ -67,7 +67,7 @@ def rays_to_image(camera: pycolmap.Camera, rays: np.ndarray) -> np.ndarray:
     return out
 
 
-_GRID_RAYS_CACHE_SIZE = 4
+_GRID_RAYS_CACHE_SIZE = 8  # grids and unit grids
 _grid_rays_cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
 _grid_rays_lock = threading.Lock()
 
@@ -77,23 +77,34 @@ def grid_rays(camera: pycolmap.Camera, width: int, height: int) -> np.ndarray:
     covers the whole image (the grid may be a downsampling of the image). Read-only: the
     last few grids are kept (one image's stages ask for its work grid a dozen times; through
     a distorted camera each costs a pycolmap call per cell)."""
-    key = (model_name(camera), camera.width, camera.height, tuple(camera.params), width, height)
-    with _grid_rays_lock:
-        rays = _grid_rays_cache.pop(key, None)
-        if rays is None:
-            xy = pixel_centers(width, height, camera.width, camera.height)
-            rays = image_to_rays(camera, xy.reshape(-1, 2)).reshape(height, width, 3)
-            rays.setflags(write=False)
-            while len(_grid_rays_cache) >= _GRID_RAYS_CACHE_SIZE:
-                _grid_rays_cache.popitem(last=False)
-        _grid_rays_cache[key] = rays  # most recently used last
-    return rays
+    return _cached_grid(camera, width, height, unit=False)
 
 
 def unit_grid_rays(camera: pycolmap.Camera, width: int, height: int) -> np.ndarray:
-    """``grid_rays`` scaled to unit length (a new array)."""
-    rays = grid_rays(camera, width, height)
-    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    """``grid_rays`` scaled to unit length; read-only and kept as ``grid_rays`` is."""
+    return _cached_grid(camera, width, height, unit=True)
+
+
+def _cached_grid(camera: pycolmap.Camera, width: int, height: int, unit: bool) -> np.ndarray:
+    """The grid's rays (``unit``: scaled to unit length) from the cache of the last
+    _GRID_RAYS_CACHE_SIZE grids, computed (and made read-only) when absent."""
+    key = (model_name(camera), camera.width, camera.height, tuple(camera.params), width, height)
+    key += (unit,)
+    with _grid_rays_lock:
+        rays = _grid_rays_cache.pop(key, None)
+    if rays is None:
+        if unit:
+            rays = grid_rays(camera, width, height)
+            rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        else:
+            xy = pixel_centers(width, height, camera.width, camera.height)
+            rays = image_to_rays(camera, xy.reshape(-1, 2)).reshape(height, width, 3)
+        rays.setflags(write=False)
+    with _grid_rays_lock:
+        while len(_grid_rays_cache) >= _GRID_RAYS_CACHE_SIZE:
+            _grid_rays_cache.popitem(last=False)
+        _grid_rays_cache[key] = rays  # most recently used last
+    return rays
 
 
 def num_params(model: str) -> int:

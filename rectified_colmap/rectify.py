@@ -244,13 +244,17 @@ def patch_view(
     kept = np.flatnonzero(keep)
     if len(kept) == 0:
         return None
-    rx, ry = rx[kept], ry[kept]
     R = rectifying_rotation(n)
-    # Virtual normalised coordinates of every kept cell.
-    Xv = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
-    u = (Xv[0] / Xv[2], Xv[1] / Xv[2])
-    if turn:
-        R, u = _turned_to_fit(R, u, cells[kept] // gw)
+    # The view's box is the box of the kept cells' hull, whose corners are among each grid
+    # row's first and last kept cell: where grid rows are straight lines in the rays
+    # (pinhole: the map to the view is projective, all in front) only those are needed.
+    ends = kept[_row_ends(cells[kept] // gw)]
+    u = _virtual_coords(R, grid[cells[ends]])
+    box = u if cam_utils.is_pinhole(camera) else _virtual_coords(R, grid[cells[kept]])
+    if turn:  # to the smallest box
+        Rz = fitting_roll(np.stack(u, 1))
+        box = (Rz[0, 0] * box[0] + Rz[0, 1] * box[1], Rz[1, 0] * box[0] + Rz[1, 1] * box[1])
+        R = Rz @ R
     # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
     sel = np.linspace(0, len(kept) - 1, min(len(kept), _MAX_FOCAL_SAMPLES)).astype(np.int64)
     sample = cells[kept[sel]]
@@ -272,23 +276,27 @@ def patch_view(
         mask=mask,
         cos_max=cos_max,
         f=f,
-        lo=np.array([u[0].min(), u[1].min()]) - half,
-        hi=np.array([u[0].max(), u[1].max()]) + half,
+        lo=np.array([box[0].min(), box[1].min()]) - half,
+        hi=np.array([box[0].max(), box[1].max()]) + half,
     )
 
 
-def _turned_to_fit(
-    R: np.ndarray, u: tuple[np.ndarray, np.ndarray], row: np.ndarray
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-    """(R, u) turned about the view's axis to the smallest box (``fitting_roll``): ``u`` the
-    kept cells' virtual coordinates (x, y), ``row`` (N,) their grid rows, in grid order.
-    The box of the cells is the box of their hull, whose corners are among each grid row's
-    first and last cell (the map to the view is projective, all in front)."""
-    last = len(row) - 1 - np.unique(row[::-1], return_index=True)[1]
-    ends = np.concatenate([np.unique(row, return_index=True)[1], last])
-    Rz = fitting_roll(np.stack([u[0][ends], u[1][ends]], 1))
-    u = (Rz[0, 0] * u[0] + Rz[0, 1] * u[1], Rz[1, 0] * u[0] + Rz[1, 1] * u[1])
-    return Rz @ R, u
+def _row_ends(row: np.ndarray) -> np.ndarray:
+    """Indices of each row's first and then each row's last entry in ``row`` (N,)
+    non-decreasing (the grid rows of cells in grid order): the candidates for the corners
+    of the cells' hull."""
+    change = row[1:] != row[:-1]
+    return np.concatenate(
+        [np.flatnonzero(np.r_[True, change]), np.flatnonzero(np.r_[change, True])]
+    )
+
+
+def _virtual_coords(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) virtual normalised coordinates of the rays (N, 3) with z = 1 under the
+    rotation R, component-wise (1-D arrays are several times faster here than products)."""
+    rx, ry = rays[:, 0], rays[:, 1]
+    Xv = [R[i, 0] * rx + R[i, 1] * ry + R[i, 2] for i in range(3)]
+    return Xv[0] / Xv[2], Xv[1] / Xv[2]
 
 
 def fitting_roll(u: np.ndarray) -> np.ndarray:

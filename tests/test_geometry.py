@@ -244,8 +244,8 @@ def test_axis_angle_rotation_exact():
 
 
 def test_grid_rays_cached_per_camera_and_grid():
-    """grid_rays keeps recent grids: the same camera and grid give the same read-only
-    array; any other parameter, size or grid gives that camera's own rays."""
+    """grid_rays and unit_grid_rays keep recent grids: the same camera and grid give the
+    same read-only array; any other parameter, size or grid gives that camera's own rays."""
     cam = cam_utils.make_camera("SIMPLE_RADIAL", [200.0, 120.0, 80.0, 0.05], 240, 160)
     rays = cam_utils.grid_rays(cam, 60, 40)
     assert cam_utils.grid_rays(cam, 60, 40) is rays
@@ -260,6 +260,8 @@ def test_grid_rays_cached_per_camera_and_grid():
         expected = cam_utils.image_to_rays(c, xy).reshape(h, w, 3)
         assert np.array_equal(cam_utils.grid_rays(c, w, h), expected)
     unit = cam_utils.unit_grid_rays(cam, 60, 40)
+    assert cam_utils.unit_grid_rays(cam, 60, 40) is unit and not unit.flags.writeable
+    assert cam_utils.grid_rays(cam, 60, 40) is not unit
     np.testing.assert_allclose(np.linalg.norm(unit, axis=-1), 1.0, atol=1e-12)
     length = np.linalg.norm(rays, axis=-1, keepdims=True)
     np.testing.assert_allclose(unit * length, rays, atol=1e-12)

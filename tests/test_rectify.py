@@ -16,6 +16,7 @@ from rectified_colmap.rectify import (
     plan_rectification,
     rectified_to_image,
     fitting_roll,
+    patch_view,
     rectifying_rotation,
     upsampled_rectification,
     warp_to_rectified,
@@ -465,6 +466,32 @@ def test_fitting_roll_turns_the_smallest_box_onto_the_axes():
         assert box < 1.03 * np.prod(np.ptp(strip, 0))  # the strip's own box (4 x 0.6)
         assert abs(np.degrees(np.arctan2(Rz[1, 0], Rz[0, 0]))) <= 45.0 + 1e-9
     np.testing.assert_array_equal(fitting_roll(strip[:2]), np.eye(3))
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
+@pytest.mark.parametrize("turn", [False, True])
+def test_view_box_holds_every_kept_cell_with_half_a_cell_each_side(name, turn):
+    """The view's extent (lo, hi) is the box of every cell of the patch within the viewing
+    angle, widened by the same margin on both sides, for a ragged patch with holes (from
+    each row's end cells under a pinhole camera, from all cells under distortion)."""
+    cam = camera(name)
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[0:GH, 0:GW]
+    mask = np.zeros((GH, GW), bool)
+    for cx, cy, r in rng.uniform([0, 0, 4], [GW, GH, 18], (12, 3)):
+        mask |= (cols - cx) ** 2 + (rows - cy) ** 2 < r * r
+    mask &= rng.uniform(size=mask.shape) > 0.3  # holes inside every row
+    n = unit(NORMALS[0])
+    conf = RectifyConf()
+    view = patch_view(cam, full_patch(n, mask), conf, turn)
+    rays = cam_utils.grid_rays(cam, GW, GH)[mask]
+    cos = -(rays @ n) / np.linalg.norm(rays, axis=1)
+    rays = rays[cos >= np.cos(np.deg2rad(conf.max_viewing_angle_deg))]
+    X = rays @ view.R.T
+    u = X[:, :2] / X[:, 2:]
+    below, above = u.min(0) - view.lo, view.hi - u.max(0)
+    assert (below > 0).all() and (above > 0).all()
+    np.testing.assert_allclose(below, above, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", list(CAMERAS))

@@ -34,7 +34,7 @@ from .. import camera as cam_utils
 from ..config import VpConf
 from ..geometry import line_angle_deg
 from ..planes import HYPOTHESIS_AXIS, REST_AXIS, Patch
-from .segments import NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors
+from .segments import NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors, within_angle
 
 
 _OPTICAL_AXIS = np.array([0.0, 0.0, 1.0])
@@ -58,7 +58,7 @@ def free_vanishing_points(
     Per VP: conf.num_free_vp_hypotheses candidates v = l_a x l_b from pairs of the
     NUM_SAMPLE_SEGMENTS longest unassigned segments (drawn with probability ~ length),
     scored by the length of the unassigned segments within conf.inlier_angle_deg
-    (``sin_errors``); the best is refined by weighted least squares (v = argmin sum_i
+    (``within_angle``); the best is refined by weighted least squares (v = argmin sum_i
     L_i (l_i . v)^2 over its inliers, 3 rounds); its inliers are then removed. Stops when
     fewer than conf.min_vp_segments segments would support the next one.
 
@@ -85,8 +85,8 @@ def free_vanishing_points(
         cand = _unit(cand[np.linalg.norm(cand, axis=1) > 1e-3])
         if len(cand) == 0:
             break
-        E = sin_errors(seg.normals[idx], seg.mids[idx], cand)
-        v = cand[np.argmax(seg.lengths[idx] @ (E < thr))]
+        inliers = within_angle(seg.normals[idx], seg.mids[idx], cand, thr)
+        v = cand[np.argmax(seg.lengths[idx].astype(np.float32) @ inliers.astype(np.float32))]
         for _ in range(3):
             inl = idx[sin_errors(seg.normals[idx], seg.mids[idx], v[None])[:, 0] < thr]
             if len(inl) < 2:

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..config import VpConf
 from ..geometry import order_frame, skew
-from .segments import _MIN_SIN, NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors
+from .segments import _MIN_SIN, NUM_SAMPLE_SEGMENTS, Segments, _unit, sin_errors, within_angle
 
 NUM_SCORE_SEGMENTS = 300
 """RANSAC frames are scored on this many of the longest segments."""
@@ -81,21 +81,11 @@ def _hypotheses(seg: Segments, conf: VpConf, rng: np.random.Generator) -> np.nda
 
 def _ransac_scores(seg: Segments, frames: np.ndarray, sin_thr: float, num: int) -> np.ndarray:
     """(M,) inlier length of the ``num`` longest segments for each candidate frame
-    (M, 3, 3). float32 and without square
-    roots: sin(theta) < t  <=>  (l.v)^2 + t^2 (m.v)^2 < t^2 (up to the |m x v| floor)."""
-    n = seg.normals[:num].astype(np.float32)  # segments are sorted longest first
-    m = seg.mids[:num].astype(np.float32)
-    t2 = np.float32(sin_thr**2)
+    (M, 3, 3) (``within_angle`` of any of its rows)."""
+    n, m = seg.normals[:num], seg.mids[:num]  # segments are sorted longest first
     inl = np.zeros((len(n), len(frames)), bool)
     for j in range(3):
-        V = np.ascontiguousarray(frames[:, j].T, dtype=np.float32)
-        a, b = n @ V, m @ V
-        a *= a
-        b *= b
-        np.minimum(b, np.float32(1.0 - _MIN_SIN**2), out=b)
-        b *= t2
-        a += b
-        inl |= a < t2
+        inl |= within_angle(n, m, frames[:, j], sin_thr)
     return seg.lengths[:num].astype(np.float32) @ inl.astype(np.float32)
 
 

@@ -2,7 +2,7 @@
 
 Input: a grayscale image (H, W) uint8 and its pycolmap camera (any COLMAP model). Output:
 ``Segments`` (endpoints, lengths, interpretation-plane normals, midpoint rays) and the
-consistency of segments with vanishing directions (``sin_errors``).
+consistency of segments with vanishing directions (``sin_errors``, ``within_angle``).
 
 Conventions (as everywhere in the package):
 - Segment endpoints ``xy`` (N, 2, 2) are COLMAP pixel coordinates of the full image
@@ -158,3 +158,29 @@ def sin_errors(normals: np.ndarray, mids: np.ndarray, V: np.ndarray) -> np.ndarr
     a = np.abs(normals @ V.T)
     b = mids @ V.T
     return a / np.sqrt(np.maximum(1.0 - b * b, _MIN_SIN**2))
+
+
+def within_angle(
+    normals: np.ndarray, mids: np.ndarray, V: np.ndarray, sin_thr: float
+) -> np.ndarray:
+    """``sin_errors(normals, mids, V) < sin_thr`` for scoring many candidates at once: in
+    float32 and without square roots, sin(theta) < t <=> (l.v)^2 + t^2 min((m.v)^2,
+    1 - 0.05^2) < t^2 (the same |m x v| floor).
+
+    Args:
+        normals: (N, 3) interpretation-plane normals; mids: (N, 3) midpoint rays.
+        V: (M, 3) unit VP directions.
+        sin_thr: the threshold on sin(theta).
+    Returns:
+        (N, M) bool.
+    """
+    t2 = np.float32(sin_thr**2)
+    Vt = np.ascontiguousarray(np.asarray(V).T, dtype=np.float32)
+    a = np.asarray(normals, np.float32) @ Vt
+    b = np.asarray(mids, np.float32) @ Vt
+    a *= a
+    b *= b
+    np.minimum(b, np.float32(1.0 - _MIN_SIN**2), out=b)
+    b *= t2
+    a += b
+    return a < t2

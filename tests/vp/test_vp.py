@@ -16,6 +16,7 @@ from rectified_colmap.vp.segments import (
     detect_segments,
     segments_on_sphere,
     sin_errors,
+    within_angle,
 )
 from tests.conftest import look_at, plane_view, textured_image
 from rectified_colmap_research.synth.lines import (
@@ -49,6 +50,31 @@ def test_sin_error_is_angle_at_midpoint():
         assert np.degrees(
             np.arcsin(sin_errors(seg.normals, seg.mids, v[None])[0, 0])
         ) == pytest.approx(a, abs=1e-6)
+
+
+def test_within_angle_is_sin_error_under_the_threshold():
+    """within_angle (float32, no square roots) agrees with sin_errors < t for segments
+    near and far from the VPs, the floor of |m x v| included (VPs on a midpoint), wherever
+    the error is not within float32 rounding of the threshold."""
+    rng = np.random.default_rng(3)
+    V = rng.normal(size=(40, 3))
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    mids = rng.normal(size=(600, 3))
+    mids[:10] = V[:10]  # the midpoint on the VP: |m x v| = 0, floored
+    mids /= np.linalg.norm(mids, axis=1, keepdims=True)
+    # interpretation planes through the midpoint, tilted from the first VP by small angles
+    toward = np.cross(mids, np.cross(V[rng.integers(0, 40, 600)], mids))
+    normals = np.cross(mids, toward) + rng.normal(scale=0.05, size=(600, 3))
+    normals -= (normals * mids).sum(1, keepdims=True) * mids
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    for deg in (2.0, 15.0):
+        t = np.sin(np.deg2rad(deg))
+        E = sin_errors(normals, mids, V)
+        clear = np.abs(E - t) > 1e-5
+        got = within_angle(normals, mids, V, t)
+        assert got.shape == E.shape and got.dtype == bool
+        assert np.array_equal(got[clear], (E < t)[clear])
+        assert 100 < got.sum() < got.size - 100 and clear.mean() > 0.99
 
 
 def test_undistorted_segments_are_exact_great_circles():
