@@ -122,9 +122,9 @@ def extract_image(
     if depth is None:
         return ImageResult(plain_sift(gray, conf.sift, sift), timings=t)
     planes, normals = image_planes(camera, depth, conf, rng, t)
-    planes = with_vanishing_points(gray, camera, planes, conf, rng, t)
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift, sift)
+    planes = with_vanishing_points(gray, camera, planes, conf, rng, t, len(plain))
     shape = planes.labels.shape
     views, features = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift, t)
     planes = replace(planes, patches=views.patches)
@@ -153,18 +153,24 @@ def with_vanishing_points(
     conf: ExtractConf,
     rng: np.random.Generator,
     t: dict[str, float],
+    plain_count: int | None = None,
 ) -> PlaneResult:
     """The planes oriented by the image's lines (``conf.vp.enabled``), with plane hypotheses
     from pairs of vanishing points appended (``conf.vp.line_hypotheses``); segments are
-    detected once for both."""
+    detected once for both. Where plain SIFT keeps ``plain_count`` keypoints and that
+    fills its budget (budget.unused_room 0), no hypotheses: ``patches_with_room`` would drop
+    their patches (UNUSED_BUDGET_AXES), so the result's views are the same without them
+    (None: always the hypotheses)."""
     orient = conf.vp.enabled and planes.directions is not None
-    if not (orient or conf.vp.line_hypotheses > 0):
+    room = plain_count is None or unused_room(plain_count, conf) > 0
+    hypotheses = conf.vp.line_hypotheses > 0 and room
+    if not (orient or hypotheses):
         return planes
     with timed(t, "vp"):
         segments = image_segments(gray, camera, conf.vp)
         if orient:
             planes = orient_with_vanishing_points(gray, camera, planes, conf, rng, segments)
-        if conf.vp.line_hypotheses > 0:
+        if hypotheses:
             planes = add_plane_hypotheses(camera, planes, segments, conf)
     return planes
 

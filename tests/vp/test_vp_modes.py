@@ -8,8 +8,15 @@ import pytest
 from rectified_colmap_research import synth
 from rectified_colmap.budget import view_pixel_budget
 from rectified_colmap.config import ExtractConf
-from rectified_colmap.pipeline import with_vanishing_points
-from rectified_colmap.planes import Patch, detect_planes
+from rectified_colmap.depth import DepthMap
+from rectified_colmap.pipeline import (
+    extract_image,
+    image_planes,
+    views_and_features,
+    with_vanishing_points,
+)
+from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch, detect_planes
+from rectified_colmap.sift import plain_sift
 from rectified_colmap.views import (
     plan_views,
     rectifications_within_budget,
@@ -106,6 +113,39 @@ def test_vp_fusion_in_pipeline_corrects_rotated_normals(views):
         assert e
         errs[enabled] = np.median(e)
     assert errs[False] > 8.0 and errs[True] < 1.0, errs
+
+
+def test_no_plane_hypotheses_where_plain_sift_fills_its_budget(views):
+    """Where plain SIFT fills its budget the plane hypotheses are not built (their views
+    would all be dropped, pipeline.patches_with_room): ``extract_image`` gives exactly the
+    features and views of the path that builds them and drops them; where the budget has
+    room, they are built."""
+    r, camera = views[5]  # two plane hypotheses
+    gray = cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY)
+    depth = DepthMap(r.depth, "metric")
+    for n, full in ((300, True), (20000, False)):
+        conf = ExtractConf()
+        conf.sift.max_num_features = n
+        plain = plain_sift(gray, conf.sift)
+        assert (len(plain) >= n) == full
+        rng = np.random.default_rng(0)
+        planes, _ = image_planes(camera, depth, conf, rng, {})
+        built = with_vanishing_points(gray, camera, planes, conf, rng, {})
+        assert any(p.axis == HYPOTHESIS_AXIS for p in built.patches)
+        rng = np.random.default_rng(0)
+        planes, _ = image_planes(camera, depth, conf, rng, {})
+        kept = with_vanishing_points(gray, camera, planes, conf, rng, {}, len(plain))
+        assert any(p.axis == HYPOTHESIS_AXIS for p in kept.patches) != full
+        shape = planes.labels.shape
+        views, f = views_and_features(gray, camera, built.patches, shape, plain, conf)
+        res = extract_image(r.image, camera, depth, conf)
+        np.testing.assert_array_equal(res.features.keypoints, f.keypoints)
+        np.testing.assert_array_equal(res.features.descriptors, f.descriptors)
+        assert len(res.rectifications) == len(views.rects) > 0
+        for a, b in zip(res.rectifications, views.rects):
+            np.testing.assert_array_equal(a.R, b.R)
+            np.testing.assert_array_equal(a.K, b.K)
+            assert a.size == b.size and a.patch_index == b.patch_index
 
 
 @pytest.mark.parametrize("seed", range(5))
