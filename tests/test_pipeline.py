@@ -292,8 +292,8 @@ def test_timings_keys(texture):
     assert list(res.timings) == [
         "normals",
         "planes",
+        "sift_plain",  # before the vanishing points: the plane hypotheses need its count
         "vp",
-        "sift_plain",  # before the views: the views over the rest of a plane need its count
         "homographies",
         "warps+sift_patches",
         "dedup",
