@@ -157,12 +157,12 @@ def with_vanishing_points(
 ) -> PlaneResult:
     """The planes oriented by the image's lines (``conf.vp.enabled``), with plane hypotheses
     from pairs of vanishing points appended (``conf.vp.line_hypotheses``); segments are
-    detected once for both. Where plain SIFT keeps ``plain_count`` keypoints and that
-    fills its budget (budget.unused_room 0), no hypotheses: ``patches_with_room`` would drop
-    their patches (UNUSED_BUDGET_AXES), so the result's views are the same without them
-    (None: always the hypotheses)."""
+    detected once for both. Where plain SIFT keeps ``plain_count`` keypoints and
+    ``patches_with_room`` would drop their patches (``unused_budget_axes_kept`` false), no
+    hypotheses: the result's views are the same without them (None: always the
+    hypotheses)."""
     orient = conf.vp.enabled and planes.directions is not None
-    room = plain_count is None or unused_room(plain_count, conf) > 0
+    room = plain_count is None or unused_budget_axes_kept(plain_count, conf)
     hypotheses = conf.vp.line_hypotheses > 0 and room
     if not (orient or hypotheses):
         return planes
@@ -213,12 +213,19 @@ def add_plane_hypotheses(
     return replace(planes, patches=list(planes.patches) + extra) if extra else planes
 
 
+def unused_budget_axes_kept(plain_count: int, conf: ExtractConf) -> bool:
+    """Whether the patches of ``UNUSED_BUDGET_AXES`` get views where plain SIFT keeps
+    ``plain_count`` keypoints: where it left part of its budget unused (budget.unused_room).
+    The one rule for ``patches_with_room`` and ``with_vanishing_points``."""
+    return unused_room(plain_count, conf) > 0
+
+
 def patches_with_room(patches: list[Patch], plain_count: int, conf: ExtractConf) -> list[Patch]:
     """The patches whose views may add features above plain SIFT's ``plain_count``
     keypoints: the second tier's (over the rest of a plane, blind) and the plane hypotheses
     (``UNUSED_BUDGET_AXES``) only where plain SIFT left part of its budget unused
     (budget.unused_room), the depth's planes always."""
-    if unused_room(plain_count, conf) > 0:
+    if unused_budget_axes_kept(plain_count, conf):
         return patches
     return [p for p in patches if p.axis not in UNUSED_BUDGET_AXES]
 
