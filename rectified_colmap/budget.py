@@ -113,6 +113,15 @@ def blind_room(count: int, plain_count: int, conf: ExtractConf) -> int:
     return max(0, min(room, conf.sift.max_num_features - count))
 
 
+def fits_either_tier(count: int, plain_count: int, conf: ExtractConf) -> bool:
+    """Whether ``cut_to_room`` keeps all of ``count`` candidates on top of plain SIFT's
+    ``plain_count`` keypoints whichever tier each falls in: at most the room
+    (``rectified_room``) and at most the unused budget (``unused_room``). Then which of them
+    are look-alikes changes nothing, and the look-alike test (dedup.lookalikes, an N x M
+    descriptor product) need not run."""
+    return count <= min(rectified_room(plain_count, conf), unused_room(plain_count, conf))
+
+
 def cut_to_room(
     feats: Features, index: np.ndarray, second: np.ndarray, plain_count: int, conf: ExtractConf
 ) -> np.ndarray:

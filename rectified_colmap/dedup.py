@@ -161,21 +161,32 @@ def duplicate_fraction(feats: Features, radius: float = 1.0, min_cosine: float =
     return float(twin.mean())
 
 
+def distinct_from_plain(
+    rectified: Features, plain: Features, conf: DedupConf = DedupConf()
+) -> np.ndarray:
+    """(K,) sorted indices of the ``rectified`` features (all views, mapped back) that may
+    come on top of ``plain`` (plain SIFT of the whole image, all kept): no near-duplicate
+    (``near_duplicate_mask``)."""
+    both = Features.concatenate([rectified, plain])
+    return np.flatnonzero(near_duplicate_mask(both, conf)[: len(rectified)])
+
+
+def lookalikes(
+    rectified: Features, index: np.ndarray, plain: Features, conf: DedupConf = DedupConf()
+) -> np.ndarray:
+    """(K,) bool for the features ``rectified[index]``: True where the descriptor is within
+    ``conf.max_plain_cosine`` of a plain feature's anywhere in the image (it can crowd that
+    feature's match out of the ratio test; all False at ``max_plain_cosine`` 1)."""
+    if conf.max_plain_cosine >= 1.0:
+        return np.zeros(len(index), bool)
+    return max_cosine(rectified.descriptors[index], plain.descriptors) > conf.max_plain_cosine
+
+
 def rectified_candidates(
     rectified: Features, plain: Features, conf: DedupConf = DedupConf()
 ) -> tuple[np.ndarray, np.ndarray]:
     """Which of the ``rectified`` features (all views, mapped back) may come on top of
-    ``plain`` (plain SIFT of the whole image, all kept), and which of those are look-alikes.
-
-    Returns (index, lookalike): index (K,) sorted indices of the rectified features that are
-    no near-duplicate (``near_duplicate_mask``); lookalike (K,) bool, True where the
-    feature's descriptor is within ``conf.max_plain_cosine`` of a plain feature's anywhere
-    in the image (it can crowd that feature's match out of the ratio test; all False at
-    ``max_plain_cosine`` 1)."""
-    both = Features.concatenate([rectified, plain])
-    index = np.flatnonzero(near_duplicate_mask(both, conf)[: len(rectified)])
-    lookalike = np.zeros(len(index), bool)
-    if conf.max_plain_cosine < 1.0:
-        cos = max_cosine(rectified.descriptors[index], plain.descriptors)
-        lookalike = cos > conf.max_plain_cosine
-    return index, lookalike
+    ``plain`` (``distinct_from_plain``), and which of those are look-alikes
+    (``lookalikes``): (index (K,) sorted, lookalike (K,) bool)."""
+    index = distinct_from_plain(rectified, plain, conf)
+    return index, lookalikes(rectified, index, plain, conf)

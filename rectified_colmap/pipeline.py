@@ -28,6 +28,7 @@ import pycolmap
 from .budget import (
     blind_room,
     cut_to_room,
+    fits_either_tier,
     largest_scales,
     unused_room,
     view_budgets,
@@ -35,7 +36,7 @@ from .budget import (
     wants_blind_views,
 )
 from .config import ExtractConf
-from .dedup import rectified_candidates
+from .dedup import distinct_from_plain, lookalikes
 from .depth import DepthMap
 from .disparity import resolve_disparity
 from .features import Features
@@ -289,15 +290,18 @@ def blind_on_top(
 ) -> Features:
     """``features`` (plain SIFT's ``plain_count`` and the rectified features kept on top,
     all kept as they are) and the features of the blind views ``blind`` that twin none of
-    them (dedup.rectified_candidates, every kept feature counted as plain: it always wins),
-    largest major scales first, look-alikes of kept features last, at most
-    budget.blind_room."""
+    them (dedup.distinct_from_plain, every kept feature counted as plain: it always wins),
+    largest major scales first, look-alikes of kept features last (dedup.lookalikes, tested
+    only where not all fit), at most budget.blind_room."""
     kept = replace(features, patch=np.full(len(features), -1, features.patch.dtype))
-    index, lookalike = rectified_candidates(blind, kept, conf.dedup)
+    index = distinct_from_plain(blind, kept, conf.dedup)
     room = blind_room(len(features), plain_count, conf)
-    first = largest_scales(blind, index[~lookalike], room)
-    later = largest_scales(blind, index[lookalike], room - len(first))
-    return Features.concatenate([features, blind.subset(np.sort(np.r_[first, later]))])
+    if len(index) > room:
+        lookalike = lookalikes(blind, index, kept, conf.dedup)
+        first = largest_scales(blind, index[~lookalike], room)
+        later = largest_scales(blind, index[lookalike], room - len(first))
+        index = np.sort(np.r_[first, later])
+    return Features.concatenate([features, blind.subset(index)])
 
 
 def second_tier_patches(views: ViewSet) -> np.ndarray:
@@ -320,11 +324,15 @@ def rectified_to_keep(
     rectified: Features, plain: Features, views: ViewSet, conf: ExtractConf
 ) -> tuple[np.ndarray, np.ndarray]:
     """(candidates, kept): indices into ``rectified`` (the features of ``views``) that twin
-    no plain feature (dedup.rectified_candidates), and those of them kept on top of
-    ``plain`` (budget.cut_to_room; look-alikes and the features of the second tier's views,
-    ``second_tier_patches``, come last)."""
-    index, lookalike = rectified_candidates(rectified, plain, conf.dedup)
-    second = lookalike | second_tier_patches(views)[rectified.patch[index]]
+    no plain feature (dedup.distinct_from_plain), and those of them kept on top of
+    ``plain`` (budget.cut_to_room; look-alikes, dedup.lookalikes, and the features of the
+    second tier's views, ``second_tier_patches``, come last). Where all candidates fit
+    either tier (budget.fits_either_tier) they are all kept, with no look-alike test."""
+    index = distinct_from_plain(rectified, plain, conf.dedup)
+    if fits_either_tier(len(index), len(plain), conf):
+        return index, index
+    second = lookalikes(rectified, index, plain, conf.dedup)
+    second |= second_tier_patches(views)[rectified.patch[index]]
     return index, cut_to_room(rectified, index, second, len(plain), conf)
 
 

@@ -9,6 +9,7 @@ from rectified_colmap.budget import (
     BLIND_YIELD_FRAC,
     OPENCV_VIEW_PIXELS_RATIO,
     cut_to_room,
+    fits_either_tier,
     largest_scales,
     rectified_room,
     split_budget,
@@ -186,6 +187,66 @@ def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
     conf.dedup.lookalikes_in_unused_budget = False  # the switch: none
     assert unused_room(0, conf) == 0
     np.testing.assert_array_equal(cut_to_room(feats, index, lookalike, 0, conf), others)
+
+
+def test_every_candidate_kept_whichever_tier_exactly_where_they_fit_either():
+    """budget.fits_either_tier: where it holds, cut_to_room keeps every candidate whatever
+    their tiers (so the pipeline may skip the look-alike test); one candidate more and the
+    cut drops one where all are second tier (the bound is tight)."""
+    conf = ExtractConf()
+    conf.sift.max_num_features = 100  # room 50 (65 at 130 keypoints), unused 100 - count
+    rng = np.random.default_rng(4)
+    m = 120
+    feats = make_features(
+        rng.uniform(0, 500, (m, 2)),
+        rng.permutation(m) + 1.0,
+        np.zeros(m),
+        random_desc(rng, m),
+        np.zeros(m),
+    )
+    for count, bound in ((0, 50), (60, 40), (95, 5), (100, 0), (130, 0)):
+        for n in (bound, bound + 1):
+            index = np.sort(rng.choice(m, n, replace=False))
+            assert fits_either_tier(n, count, conf) == (n == bound)
+            for p in (0.0, 0.3, 0.7, 1.0):
+                got = cut_to_room(feats, index, rng.random(n) < p, count, conf)
+                if n == bound:
+                    np.testing.assert_array_equal(got, index)
+            if n > bound:
+                assert len(cut_to_room(feats, index, np.ones(n, bool), count, conf)) < n
+    conf.dedup.lookalikes_in_unused_budget = False  # no second tier: only no candidate fits
+    assert fits_either_tier(0, 0, conf) and not fits_either_tier(1, 0, conf)
+
+
+def test_pipeline_skips_the_lookalike_test_only_where_it_changes_nothing(monkeypatch):
+    """rectified_to_keep runs dedup.lookalikes only where not every candidate fits
+    (budget.fits_either_tier): the features are exactly those
+    of the path that always runs it, where the budget has room (test skipped) and where
+    plain SIFT fills it (test run)."""
+    from rectified_colmap import pipeline
+
+    texture = textured_image(900, 900, 11)
+    R, t = look_at([0.8, -4.0, 4.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    calls = []
+    real = pipeline.lookalikes
+
+    def counted(*args, **kw):
+        calls.append(len(args[1]))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(pipeline, "lookalikes", counted)
+    conf = ExtractConf()
+    for budget, tested in ((12000, False), (400, True)):
+        conf.sift.max_num_features = budget
+        calls.clear()
+        out = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+        assert bool(calls) == tested and (out.patch >= 0).sum() > 50
+        with monkeypatch.context() as always:  # the look-alike test wherever it can run
+            always.setattr(pipeline, "fits_either_tier", lambda *a: False)
+            ref = extract_image(img, CAMERA, DepthMap(z, "metric"), conf).features
+        for name in ("keypoints", "shapes", "descriptors", "patch"):
+            np.testing.assert_array_equal(getattr(out, name), getattr(ref, name))
 
 
 def test_views_over_the_rest_of_a_plane_only_fill_plain_sifts_unused_budget():
@@ -424,3 +485,9 @@ def test_blind_features_come_on_top_of_every_kept_feature_within_what_is_left():
     out = blind_on_top(kept, Features.concatenate([twin, others]), 6, conf)
     np.testing.assert_array_equal(out.keypoints[:7], kept.keypoints)
     np.testing.assert_array_equal(out.keypoints[7:, 0], [400.0, 500.0, 600.0])
+    others.descriptors[1] = plain.descriptors[0]  # 400: a look-alike of a plain feature
+    out = blind_on_top(kept, others, 6, conf)  # room 3 of 4: the look-alike goes
+    np.testing.assert_array_equal(out.keypoints[7:, 0], [300.0, 500.0, 600.0])
+    out = blind_on_top(plain, others, 6, conf)  # room 4 (blind_room): all four, in order
+    assert blind_room(6, 6, conf) == 4
+    np.testing.assert_array_equal(out.keypoints[6:, 0], [300.0, 400.0, 500.0, 600.0])
