@@ -25,12 +25,19 @@ hundreds of photos). ``--num_workers 1 2`` runs ``rectified`` once per worker co
 ``tree MB`` the peak of the summed resident memory of the process and its children
 (sampled from /proc every 0.1 s).
 
+``--rounds N`` runs every method N times, in alternating order (forward, backward, ...), so
+that a drift of the machine's speed falls on all methods alike: each column is then the
+median over the rounds, ``CPU ratio`` the median of the rounds' ratios (each round's
+method against the ``pycolmap`` run of the same round) and ``CPU ratio range`` their
+smallest and largest (on a 2-core machine one run's ratio moves by 10 % or more).
+
     python scripts/bench_cli.py --image_path ../shared/data/strecha-dev/fountain-P11/images \\
         --max_images 6 --camera_params 1379.74,1382.08,760.095,503.155
     python scripts/bench_cli.py ... --resize 3072x2048      # upscaled copies
     python scripts/bench_cli.py --synthetic 6               # rendered streets (PNG)
     python scripts/bench_cli.py --synthetic 6 --depth_files # ... with their exact depth
     python scripts/bench_cli.py ... --methods pycolmap rectified --num_workers 1 2
+    python scripts/bench_cli.py ... --resize 640x480 --rounds 5   # medians of 5 rounds
 """
 
 from __future__ import annotations
@@ -156,7 +163,7 @@ def prepare_images(args, folder: Path) -> list[str]:
     return names
 
 
-def main(argv=None):
+def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--image_path", type=Path)
     p.add_argument("--max_images", type=int, default=6)
@@ -190,12 +197,152 @@ def main(argv=None):
         default=["pycolmap", "colmap", "rectified"],
         choices=["pycolmap", "colmap", "rectified"],
     )
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="run every method this many times, in alternating order; columns are medians",
+    )
     args = p.parse_args(argv)
     if not args.synthetic and args.image_path is None:
         p.error("--image_path or --synthetic")
     if args.depth_files and not args.synthetic:
         p.error("--depth_files needs --synthetic")
+    if args.rounds < 1:
+        p.error("--rounds must be at least 1")
+    return args
 
+
+def build_runs(args, tmp: Path, images: Path, names: list[str], size) -> list[tuple]:
+    """(name, command, command on the first image alone) per measured method; ``None`` in
+    a command stands for its database path."""
+    n = args.max_num_features
+    cmds = {
+        "pycolmap": [sys.executable, "-c", PLAIN, None, str(images), str(n), ",".join(names)],
+        "colmap": [
+            "colmap",
+            "feature_extractor",
+            "--database_path",
+            None,
+            "--image_path",
+            str(images),
+            "--SiftExtraction.use_gpu",
+            "0",
+            "--SiftExtraction.num_threads",
+            "1",
+            "--SiftExtraction.max_num_features",
+            str(n),
+        ],
+        "rectified": [
+            "rectified-colmap",
+            "extract",
+            "--database",
+            None,
+            "--image_path",
+            str(images),
+            "--max_num_features",
+            str(n),
+            "--no_progress",
+        ],
+    }
+    if args.camera_params:
+        params = [float(v) for v in args.camera_params.split(",")]
+        if args.resize and args.image_path:
+            w0, _ = image_size(Path(args.image_path) / names[0])
+            params = [v * size[0] / w0 for v in params]
+        cmds["rectified"] += [
+            "--camera_model",
+            "PINHOLE",
+            "--camera_params",
+            ",".join(f"{v:.6g}" for v in params),
+        ]
+    if args.depth_files:
+        cmds["rectified"] += ["--depth_path", str(tmp / "depth")]
+    for flag in ("conf", "orientation"):
+        if getattr(args, flag):
+            cmds["rectified"] += [f"--{flag}", getattr(args, flag)]
+    if shutil.which("colmap") is None and "colmap" in args.methods:
+        print("colmap executable not found: skipping that row", file=sys.stderr)
+        args.methods.remove("colmap")
+
+    first = tmp / "first.txt"
+    first.write_text(names[0] + "\n")
+    alone = {  # the same command on the first image only
+        "pycolmap": lambda c: c[:-1] + [names[0]],
+        "colmap": lambda c: c + ["--image_list_path", str(first)],
+        "rectified": lambda c: c + ["--image_list", str(first)],
+    }
+    runs = []
+    for method in args.methods:
+        if method == "rectified" and args.num_workers:
+            for w in args.num_workers:
+                command = cmds[method] + ["--num_workers", str(w)]
+                runs.append((f"rectified x{w}", command, alone[method](command)))
+        else:
+            runs.append((method, cmds[method], alone[method](cmds[method])))
+    return runs
+
+
+def measure(runs: list[tuple], tmp: Path, n_images: int, env: dict, rounds: int) -> dict:
+    """name -> one measured row per round (``run_measured`` plus keypoints per image and,
+    with more than one image, ``after`` / ``startup``). Odd rounds run the methods in
+    reverse order."""
+    out: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
+    for r in range(rounds):
+        order = list(enumerate(runs))
+        for i, (name, command, command_first) in order[:: -1 if r % 2 else 1]:
+            db, db_first = tmp / f"run{r}_{i}.db", tmp / f"run{r}_{i}_first.db"
+            cmd = [db.as_posix() if c is None else c for c in command]
+            row = run_measured(cmd, env) | {"kp": keypoints_per_image(db)}
+            if n_images > 1:
+                cmd = [db_first.as_posix() if c is None else c for c in command_first]
+                one = run_measured(cmd, env)["cpu"]
+                row["after"] = (row["cpu"] - one) / (n_images - 1)
+                row["startup"] = one - row["after"]
+            out[name].append(row)
+            print(f"{name}, round {r + 1}: {row['wall']:.1f} s wall", file=sys.stderr, flush=True)
+    return out
+
+
+def summarise(measured: dict[str, list[dict]], base: str = "pycolmap") -> dict[str, dict]:
+    """name -> the median of each measured value over the rounds, and ``ratios``: each
+    round's CPU ratio to ``base`` in the same round (empty without ``base``)."""
+    rows = {}
+    for name, per_round in measured.items():
+        row = {k: float(np.median([r[k] for r in per_round])) for k in per_round[0]}
+        row["ratios"] = [r["cpu"] / b["cpu"] for r, b in zip(per_round, measured.get(base, []))]
+        rows[name] = row
+    return rows
+
+
+def print_table(rows: dict[str, dict], k: int) -> None:
+    """The markdown table of ``summarise``'s rows, per image of ``k``."""
+    print(
+        "| method | CPU s / image | wall s / image | CPU ratio | CPU ratio range | wall ratio "
+        "| start-up s | CPU s / image after | ratio after | peak MB | tree MB "
+        "| keypoints / image |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    base = rows.get("pycolmap")
+    for method, r in rows.items():
+        ratio = np.median(r["ratios"]) if r["ratios"] else None  # of the rounds' ratios
+        cpu_ratio = f"{ratio:.2f}x" if ratio is not None else "-"
+        wall_ratio = f"{r['wall'] / base['wall']:.2f}x" if base else "-"
+        span = f"{min(r['ratios']):.2f}-{max(r['ratios']):.2f}x" if r["ratios"] else "-"
+        after, startup, after_ratio = "-", "-", "-"
+        if "after" in r:
+            after, startup = f"{r['after']:.2f}", f"{r['startup']:.2f}"
+            if base:
+                after_ratio = f"{r['after'] / base['after']:.2f}x"
+        print(
+            f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} | {span} "
+            f"| {wall_ratio} | {startup} | {after} | {after_ratio} | {r['peak_MB']:.0f} "
+            f"| {r['tree_MB']:.0f} | {r['kp']:.0f} |"
+        )
+
+
+def main(argv=None):
+    args = parse_args(argv)
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     tmp = Path(tempfile.mkdtemp(prefix="bench_cli_"))
     try:
@@ -203,110 +350,21 @@ def main(argv=None):
         images.mkdir()
         names = prepare_images(args, images)
         size = image_size(images / names[0])
-        n = args.max_num_features
-        cmds = {
-            "pycolmap": [sys.executable, "-c", PLAIN, None, str(images), str(n), ",".join(names)],
-            "colmap": [
-                "colmap",
-                "feature_extractor",
-                "--database_path",
-                None,
-                "--image_path",
-                str(images),
-                "--SiftExtraction.use_gpu",
-                "0",
-                "--SiftExtraction.num_threads",
-                "1",
-                "--SiftExtraction.max_num_features",
-                str(n),
-            ],
-            "rectified": [
-                "rectified-colmap",
-                "extract",
-                "--database",
-                None,
-                "--image_path",
-                str(images),
-                "--max_num_features",
-                str(n),
-                "--no_progress",
-            ],
-        }
-        if args.camera_params:
-            params = [float(v) for v in args.camera_params.split(",")]
-            if args.resize and args.image_path:
-                w0, _ = image_size(Path(args.image_path) / names[0])
-                params = [v * size[0] / w0 for v in params]
-            cmds["rectified"] += [
-                "--camera_model",
-                "PINHOLE",
-                "--camera_params",
-                ",".join(f"{v:.6g}" for v in params),
-            ]
-        if args.depth_files:
-            cmds["rectified"] += ["--depth_path", str(tmp / "depth")]
-        for flag in ("conf", "orientation"):
-            if getattr(args, flag):
-                cmds["rectified"] += [f"--{flag}", getattr(args, flag)]
-        if shutil.which("colmap") is None and "colmap" in args.methods:
-            print("colmap executable not found: skipping that row", file=sys.stderr)
-            args.methods.remove("colmap")
-
-        first = tmp / "first.txt"
-        first.write_text(names[0] + "\n")
-        alone = {  # the same command on the first image only
-            "pycolmap": lambda c: c[:-1] + [names[0]],
-            "colmap": lambda c: c + ["--image_list_path", str(first)],
-            "rectified": lambda c: c + ["--image_list", str(first)],
-        }
-        runs = []
-        for method in args.methods:
-            if method == "rectified" and args.num_workers:
-                for w in args.num_workers:
-                    command = cmds[method] + ["--num_workers", str(w)]
-                    runs.append((f"rectified x{w}", command, alone[method](command)))
-            else:
-                runs.append((method, cmds[method], alone[method](cmds[method])))
-        rows = {}
-        for i, (name, command, command_first) in enumerate(runs):
-            db, db_first = tmp / f"run{i}.db", tmp / f"run{i}_first.db"
-            cmd = [db.as_posix() if c is None else c for c in command]
-            rows[name] = run_measured(cmd, env) | {"kp": keypoints_per_image(db)}
-            if len(names) > 1:
-                cmd = [db_first.as_posix() if c is None else c for c in command_first]
-                one = run_measured(cmd, env)["cpu"]
-                rows[name]["after"] = (rows[name]["cpu"] - one) / (len(names) - 1)
-                rows[name]["startup"] = one - rows[name]["after"]
-            print(f"{name}: {rows[name]['wall']:.1f} s wall", file=sys.stderr, flush=True)
+        runs = build_runs(args, tmp, images, names, size)
+        rows = summarise(measure(runs, tmp, len(names), env, args.rounds))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
     what = f"{args.synthetic} rendered streets" if args.synthetic else f"{len(names)} images"
     if args.depth_files:
         what += " with depth files"
+    if args.rounds > 1:
+        what += f", medians of {args.rounds} rounds"
     with open("/proc/loadavg") as f:
         load = f.read().split()[0]
+    n = args.max_num_features
     print(f"\n{what}, {size[0]}x{size[1]}, budget {n}; load average at end {load}\n")
-    print(
-        "| method | CPU s / image | wall s / image | CPU ratio | wall ratio | start-up s "
-        "| CPU s / image after | ratio after | peak MB | tree MB | keypoints / image |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    base = rows.get("pycolmap")
-    k = len(names)
-    for method, r in rows.items():
-        cpu_ratio = f"{r['cpu'] / base['cpu']:.2f}x" if base else "-"
-        wall_ratio = f"{r['wall'] / base['wall']:.2f}x" if base else "-"
-        after, startup, after_ratio = "-", "-", "-"
-        if "after" in r:
-            after, startup = f"{r['after']:.2f}", f"{r['startup']:.2f}"
-            if base:
-                after_ratio = f"{r['after'] / base['after']:.2f}x"
-        print(
-            f"| {method} | {r['cpu'] / k:.2f} | {r['wall'] / k:.2f} | {cpu_ratio} "
-            f"| {wall_ratio} | {startup} | {after} | {after_ratio} | {r['peak_MB']:.0f} "
-            f"| {r['tree_MB']:.0f} | {r['kp']:.0f} |"
-        )
+    print_table(rows, len(names))
 
 
 if __name__ == "__main__":
