@@ -293,7 +293,9 @@ def water_fill(needs: np.ndarray, weights: np.ndarray, total: float) -> np.ndarr
     r, n, w = ratio[order], needs[order], weights[order]
     # at c = r[k], claims 0..k are met: sum(n[:k+1]) + r[k] * sum(w[k+1:])
     after = w.sum() - np.cumsum(w)
-    filled = np.cumsum(n) + np.where(after > 0, r * after, 0.0)
+    tail = np.zeros_like(after)
+    tail[after > 0] = r[after > 0] * after[after > 0]  # no inf x 0 (a claim of weight 0)
+    filled = np.cumsum(n) + tail
     k = int(np.searchsorted(filled, total, side="right"))  # claims 0..k-1 met
     met = n[:k].sum()
     rest = w[k:].sum()

@@ -148,6 +148,7 @@ def test_no_plane_hypotheses_where_plain_sift_fills_its_budget(views):
             assert a.size == b.size and a.patch_index == b.patch_index
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no inf x 0 for a claim of weight 0
 @pytest.mark.parametrize("seed", range(5))
 def test_water_fill_is_the_largest_common_cap(seed):
     """Shares min(need, c x weight) summing to the total, c the largest such: the same c as
