@@ -147,6 +147,17 @@ def test_rectified_candidates_drop_twins_and_flag_lookalikes_of_plain_ones():
     assert not lookalike.any()
 
 
+def ranked_features(rng, m):
+    """m rectified features (view 0) of distinct scales 1..m in random order."""
+    return make_features(
+        rng.uniform(0, 500, (m, 2)),
+        rng.permutation(m) + 1.0,
+        np.zeros(m),
+        random_desc(rng, m),
+        np.zeros(m),
+    )
+
+
 def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
     """cut_to_room: the features unlike any plain one first (largest major scales) up to
     the room; then look-alikes (largest major scales) up to the room left, and at most the
@@ -156,13 +167,7 @@ def test_lookalikes_only_fill_the_budget_plain_sift_left_unused():
     conf.sift.max_num_features = 100  # room = 0.5 x max(count, 100)
     rng = np.random.default_rng(3)
     m = 120
-    feats = make_features(
-        rng.uniform(0, 500, (m, 2)),
-        rng.permutation(m) + 1.0,
-        np.zeros(m),
-        random_desc(rng, m),
-        np.zeros(m),
-    )
+    feats = ranked_features(rng, m)
     index = np.arange(0, m, 1)
     lookalike = np.arange(m) % 3 != 0  # 80 look-alikes, 40 others
     others, looks = index[~lookalike], index[lookalike]
@@ -197,13 +202,7 @@ def test_every_candidate_kept_whichever_tier_exactly_where_they_fit_either():
     conf.sift.max_num_features = 100  # room 50 (65 at 130 keypoints), unused 100 - count
     rng = np.random.default_rng(4)
     m = 120
-    feats = make_features(
-        rng.uniform(0, 500, (m, 2)),
-        rng.permutation(m) + 1.0,
-        np.zeros(m),
-        random_desc(rng, m),
-        np.zeros(m),
-    )
+    feats = ranked_features(rng, m)
     for count, bound in ((0, 50), (60, 40), (95, 5), (100, 0), (130, 0)):
         for n in (bound, bound + 1):
             index = np.sort(rng.choice(m, n, replace=False))
