@@ -75,7 +75,11 @@ from rectified_colmap_research.evaluation.homography_report import (
     split_group_markdown,
     split_summary_markdown,
 )
-from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera
+from rectified_colmap_research.evaluation.extreme_pairs import (
+    GUESSED_FOCAL_FACTOR,
+    guessed_camera,
+    pinhole_camera,
+)
 from rectified_colmap_research.evaluation.oracle import plane_depth
 from rectified_colmap_research.evaluation.methods import (
     add_variant_argument,
@@ -87,10 +91,6 @@ logger = logging.getLogger("eval_homography")
 METHODS = ("sift", "rectsift", "oracle", "oracle_true", "asift")
 DEFAULT_METHODS = ("sift", "rectsift", "oracle", "asift")
 ORACLES = ("oracle", "oracle_true")
-
-
-def guessed_camera(width: int, height: int, focal_factor: float):
-    return pinhole_camera(focal_factor * max(width, height), (width, height))
 
 
 def true_cameras(pairs, factor: float) -> dict:
@@ -232,7 +232,12 @@ def main(argv=None) -> int:
     )
     p.add_argument("--rect_conf", default=None, help="JSON conf overrides (rectsift, oracle)")
     p.add_argument("--max_num_features", type=int, default=None)
-    p.add_argument("--focal_factor", type=float, default=1.2, help="guessed f = this x max(W, H)")
+    p.add_argument(
+        "--focal_factor",
+        type=float,
+        default=GUESSED_FOCAL_FACTOR,
+        help="guessed f = this x max(W, H)",
+    )
     p.add_argument(
         "--cameras",
         choices=("guessed", "true"),

@@ -4,8 +4,8 @@ of each endpoint, beside the view pixels each kind costs.
 
 For the pairs of ``--data`` (pairs.json and images/, e.g. one half of
 build_extreme_pairs.py's generated pairs with ``--split choose``), every image is extracted
-as eval_homography.py's ``rectsift`` does (guessed pinhole camera f = 1.2 x the longer
-side, the embedded network, ``--conf``). Each feature gets the kind of the view it came
+as eval_homography.py's ``rectsift`` does (extreme_pairs.guessed_camera: f = 1.2 x the
+longer side, the embedded network, ``--conf``). Each feature gets the kind of the view it came
 from (``view_kinds``): ``plain`` (plain SIFT on the image), ``depth`` (a plane of the
 depth network), ``hyp`` / ``rest`` (a plane hypothesis of the vanishing points, over the
 whole image / over the rest of a plane), ``hyp-nbr`` / ``rest-nbr`` (their tilt
@@ -37,7 +37,7 @@ from rectified_colmap.eval.homography import apply_homography, evaluate_pair, po
 from rectified_colmap.eval.matching import match_ratio
 from rectified_colmap.pipeline import ImageResult, extract_image
 from rectified_colmap.planes import BLIND_AXIS, HYPOTHESIS_AXIS, Patch
-from rectified_colmap_research.evaluation.extreme_pairs import pinhole_camera, read_half
+from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
 
 logger = logging.getLogger("view_yield")
 KINDS = ("plain", "depth", "hyp", "hyp-nbr", "rest", "rest-nbr", "blind")
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
         if name not in images:
             rgb = cv2.cvtColor(cv2.imread(str(args.data / name)), cv2.COLOR_BGR2RGB)
             h, w = rgb.shape[:2]
-            cam = pinhole_camera(1.2 * max(w, h), (w, h))
+            cam = guessed_camera(w, h)
             res = extract_image(rgb, cam, source(rgb, cam, name), conf, np.random.default_rng(0))
             f, plain = res.features, res.features.patch < 0
             every = {"keypoints": f.keypoints, "descriptors": f.descriptors}

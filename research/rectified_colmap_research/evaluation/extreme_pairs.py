@@ -98,6 +98,16 @@ def pinhole_camera(focal: float, size: tuple[int, int]):
     return make_camera("PINHOLE", [focal, focal, size[0] / 2, size[1] / 2], *size)
 
 
+GUESSED_FOCAL_FACTOR = 1.2
+"""The evaluations' guessed focal length, x the longer side (COLMAP's guess without EXIF)."""
+
+
+def guessed_camera(width: int, height: int, focal_factor: float = GUESSED_FOCAL_FACTOR):
+    """The PINHOLE camera an evaluation gives a method that is not told the focal length:
+    f = ``focal_factor`` x max(width, height), principal point at the centre."""
+    return pinhole_camera(focal_factor * max(width, height), (width, height))
+
+
 def plane_homography(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(3, 3) G: texture (world plane z = 0, COLMAP texture pixels) -> view pixels,
     K [r1 r2 t]. Its third output coordinate is the point's camera depth z_c (> 0 in
