@@ -126,7 +126,7 @@ def cut_to_room(
     feats: Features, index: np.ndarray, second: np.ndarray, plain_count: int, conf: ExtractConf
 ) -> np.ndarray:
     """The rectified features kept on top of plain SIFT's ``plain_count`` keypoints, sorted:
-    of ``feats[index]`` (the candidates, dedup.rectified_candidates), first those of the
+    of ``feats[index]`` (the candidates, dedup.distinct_from_plain), first those of the
     first tier (``second`` (K,) bool: False), largest major scales first, up to the room
     (``rectified_room``); then the second tier (look-alikes of plain features, features of
     views over the rest of a plane), largest major scales first, up to the room left and at

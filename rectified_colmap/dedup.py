@@ -180,13 +180,3 @@ def lookalikes(
     if conf.max_plain_cosine >= 1.0:
         return np.zeros(len(index), bool)
     return max_cosine(rectified.descriptors[index], plain.descriptors) > conf.max_plain_cosine
-
-
-def rectified_candidates(
-    rectified: Features, plain: Features, conf: DedupConf = DedupConf()
-) -> tuple[np.ndarray, np.ndarray]:
-    """Which of the ``rectified`` features (all views, mapped back) may come on top of
-    ``plain`` (``distinct_from_plain``), and which of those are look-alikes
-    (``lookalikes``): (index (K,) sorted, lookalike (K,) bool)."""
-    index = distinct_from_plain(rectified, plain, conf)
-    return index, lookalikes(rectified, index, plain, conf)

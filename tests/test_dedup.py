@@ -27,7 +27,8 @@ from rectified_colmap.dedup import (
     max_cosine,
     near_duplicate_mask,
     neighbour_pairs,
-    rectified_candidates,
+    distinct_from_plain,
+    lookalikes,
 )
 from rectified_colmap.depth import DepthMap
 from rectified_colmap.features import Features, similarity_frames
@@ -115,7 +116,7 @@ def test_plain_twins_always_win_and_the_more_oblique_rectified_twin_wins():
         assert both.patch[near_duplicate_mask(both)].tolist() == [1]
 
 
-def test_rectified_candidates_drop_twins_and_flag_lookalikes_of_plain_ones():
+def test_candidates_drop_twins_and_flag_lookalikes_of_plain_ones():
     """A rectified feature is a candidate unless it twins a plain one; a candidate is a
     look-alike where its descriptor is within max_plain_cosine of a plain feature's
     ANYWHERE in the image (not a twin: 200 px away: it can crowd that feature out of the
@@ -138,11 +139,14 @@ def test_rectified_candidates_drop_twins_and_flag_lookalikes_of_plain_ones():
     rect = make_features(xy, plain.scales[:12], np.zeros(12), desc, np.zeros(12))
     cos = max_cosine(rect.descriptors, plain.descriptors)
     assert (cos[:5] > 0.99).all() and (cos[5:10] < 0.9).all()
-    index, lookalike = rectified_candidates(rect, plain)
+    index = distinct_from_plain(rect, plain)
+    lookalike = lookalikes(rect, index, plain)
     np.testing.assert_array_equal(index, np.arange(10))
     np.testing.assert_array_equal(lookalike, np.arange(10) < 5)
     # max_plain_cosine 1: no look-alikes, the twins still go
-    index, lookalike = rectified_candidates(rect, plain, DedupConf(max_plain_cosine=1.0))
+    no_test = DedupConf(max_plain_cosine=1.0)
+    index = distinct_from_plain(rect, plain, no_test)
+    lookalike = lookalikes(rect, index, plain, no_test)
     np.testing.assert_array_equal(index, np.arange(10))
     assert not lookalike.any()
 
@@ -299,7 +303,7 @@ def test_the_cut_keeps_the_largest_major_scales_within_the_cap():
         [1] * m,
         stretch,
     )
-    index = np.arange(0, m, 2)  # a subset, as rectified_candidates gives
+    index = np.arange(0, m, 2)  # a subset, as distinct_from_plain gives
     for room in (0, 7, 20, 50):
         got = largest_scales(feats, index, room)
         expect = np.sort(index[np.argsort(-feats.scales[index] / 0.65, kind="stable")[:room]])

@@ -17,7 +17,7 @@ GT-consistent matches):
 - ``views``: the views as the pipeline sizes them (its pixel budget), ``--unlimited``
   features;
 - ``budget``: the views' SIFT budgets (rectified_colmap.budget.view_budgets);
-- ``dedup``: without twins of plain features (dedup.rectified_candidates);
+- ``dedup``: without twins of plain features (dedup.distinct_from_plain);
 - ``final``: cut to the room above plain SIFT, look-alikes of plain features only in its
   unused budget (budget.cut_to_room), blind views' features on top
   (pipeline.blind_on_top): the pipeline's output (pipeline.views_and_features).
