@@ -32,7 +32,8 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
    extreme pairs) when the pair file has it, and in all; ``--group_by KEY [KEY ...]`` adds a
    table per key of the pair file (e.g. ``band`` of scripts/build_plane_pairs.py,
    ``tilt_bin scale_bin rotation both_oblique`` of scripts/build_extreme_pairs.py), each
-   value per half; ``--region_ransac`` estimates each homography from the matches in the
+   value per half (a joint key ``A+B``, e.g. ``both_oblique+scale_bin``: a row per pair of
+   values); ``--region_ransac`` estimates each homography from the matches in the
    region only.
 
 Example::
@@ -71,6 +72,7 @@ from rectified_colmap.pipeline import extract_image
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.asift import asift_features
 from rectified_colmap_research.evaluation.homography_report import (
+    JOINT,
     write_records_csv,
     split_group_markdown,
     split_summary_markdown,
@@ -219,6 +221,18 @@ def extraction_cpu(h5: Path) -> float | None:
     return float(np.mean(list(cpu.values()))) if cpu else None
 
 
+def has_key(info: dict, key: str) -> bool:
+    """Whether a pair record has ``key`` (each part of a joint ``A+B``)."""
+    return all(k in info for k in key.split("+"))
+
+
+def group_value(info: dict, key: str) -> str:
+    """A pair record's value of ``key`` ("-" where it has none); a joint key ``A+B`` joins
+    the values of A and B ("2-4 & 2-4x" for ``tilt_bin+scale_bin``), so a class that fails
+    only where two properties meet shows as one row."""
+    return JOINT.join(str(info.get(k, "-")) for k in key.split("+"))
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, required=True, help="folder with pairs.json, images/")
@@ -252,7 +266,7 @@ def main(argv=None) -> int:
         default=[],
         metavar="KEY",
         help="also summarise per value of these keys of the pair records (e.g. band; "
-        "tilt_bin scale_bin rotation both_oblique)",
+        "tilt_bin scale_bin rotation both_oblique; A+B: per pair of values of A and B)",
     )
     p.add_argument(
         "--split_key",
@@ -307,16 +321,16 @@ def main(argv=None) -> int:
     order = {c: k for k, c in enumerate(cases)}  # the records' order of one joint evaluation
     records.sort(key=lambda r: order[(r["pair"], r["direction"], r["method"])])
     info = {q.name: q.info for q in pairs}
-    keys = [k for k in [args.split_key, *args.group_by] if any(k in q.info for q in pairs)]
+    keys = [k for k in [args.split_key, *args.group_by] if any(has_key(q.info, k) for q in pairs)]
     for r in records:
-        r.update({k: info[r["pair"]].get(k, "-") for k in keys})
+        r.update({k: group_value(info[r["pair"]], k) for k in keys})
     write_records_csv(out / "records.csv", records)
     splits = None
     if any(args.split_key in q.info for q in pairs):
         splits = {q.name: str(q.info.get(args.split_key, "-")) for q in pairs}
     parts = [split_summary_markdown(records, splits, cpu, conf)]
     for key in args.group_by:
-        groups = {q.name: str(q.info.get(key, "-")) for q in pairs}
+        groups = {q.name: group_value(q.info, key) for q in pairs}
         parts.append(split_group_markdown(records, key, groups, splits, conf))
     parts.append(homography_markdown(records, conf))
     table = "\n".join(parts)

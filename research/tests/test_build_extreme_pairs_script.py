@@ -105,6 +105,7 @@ def test_evaluation_reports_both_halves_classes_and_cost(sources, tmp_path):
     out = tmp_path / "eval"
     argv = ["--data", str(data), "--output_dir", str(out), "--methods", "sift", "asift"]
     argv += ["oracle_true", "--cameras", "true", "--group_by", "tilt_bin", "both_oblique"]
+    argv += ["tilt_bin+both_oblique"]
     assert ev.main(argv) == 0
     text = (out / "summary.md").read_text()
     halves = sorted({r["split"] for r in recs})
@@ -115,6 +116,9 @@ def test_evaluation_reports_both_halves_classes_and_cost(sources, tmp_path):
     rows = list(csv.DictReader(open(out / "records.csv")))
     assert len(rows) == 2 * 2 * 3
     assert {r["split"] for r in rows} == set(halves)
+    for r in rows:  # the joint class joins its parts' values
+        assert r["tilt_bin+both_oblique"] == f"{r['tilt_bin']} & {r['both_oblique']}"
+    assert "| tilt_bin+both_oblique | method |" in text
     for m in ("sift", "asift", "oracle_true"):
         cpu = json.loads((out / "features" / f"{m}.cpu.json").read_text())
         assert len(cpu) == 4 and all(v > 0 for v in cpu.values())

@@ -46,6 +46,8 @@ def test_label_order_sorts_bins_by_their_numbers():
     assert sorted(labels[3:6], key=label_order) == ["<2x", "2-4x", ">4x"]
     assert sorted(labels[6:10], key=label_order) == ["0", "90", "180", "other"]
     assert sorted(labels[10:], key=label_order) == ["no", "yes"]
+    joint = ["yes & <2x", "no & >4x", "no & 2-4x", "yes & 2-4x"]  # part by part
+    assert sorted(joint, key=label_order) == ["no & 2-4x", "no & >4x", "yes & <2x", "yes & 2-4x"]
 
 
 def test_halves_and_solved_pairs():

@@ -31,10 +31,17 @@ def write_records_csv(path: Path | str, records: list[dict]) -> None:
         w.writerows(records)
 
 
+JOINT = " & "
+"""Separator of the parts of a joint label ("2-4 & yes": eval_homography.py's ``A+B``)."""
+
+
 def label_order(label: str) -> tuple:
     """Sort key of bin labels: by their first number ("<2" before "2-4" before "4-8",
     "0" before "90" before "180"; a leading "<" just below it, ">" just above), then
-    labels without a number alphabetically ("no" before "other" before "yes")."""
+    labels without a number alphabetically ("no" before "other" before "yes"); a joint
+    label part by part."""
+    if JOINT in label:
+        return tuple(label_order(part) for part in label.split(JOINT))
     m = re.search(r"\d+(\.\d+)?", label)
     if m is None:
         return (1, 0.0, label)
