@@ -309,20 +309,31 @@ def estimate_homography(
     return positive_homography(H, points0=x0[inl]), inl
 
 
+def match_gt_errors(
+    pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf
+) -> tuple[np.ndarray, np.ndarray]:
+    """The matches of one pair and method (f0/f1 as ``evaluate_pair``'s): (M, 2) index pairs
+    (ratio test, ``conf.mutual``) and (M,) their distances |H_gt x0 - x1| (COLMAP px), inf
+    where the image-0 point is outside ``pair.region0``: the GT-consistent ones are those
+    under ``conf.gt_threshold``."""
+    m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
+    x0, x1 = f0["keypoints"][m[:, 0]], f1["keypoints"][m[:, 1]]
+    err = np.linalg.norm(apply_homography(pair.H, x0) - x1, axis=1) if len(m) else np.zeros(0)
+    if pair.region0 is not None and len(m):
+        err[~points_in_region(x0, pair.region0)] = np.inf
+    return m, err
+
+
 def evaluate_pair(pair: HomographyPair, f0: Mapping, f1: Mapping, conf: HomographyConf) -> dict:
     """One pair, one method: f0/f1 dicts with ``keypoints`` (N, 2) COLMAP px and
     ``descriptors`` (N, D). Returns a record (plain dict); with a region, ``num_gt`` counts
     only matches whose image-0 point is in it, and with ``conf.region_ransac`` only they
     estimate the homography (``num_inliers`` among them)."""
-    m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
+    m, err = match_gt_errors(pair, f0, f1, conf)
     x0, x1 = f0["keypoints"][m[:, 0]], f1["keypoints"][m[:, 1]]
-    err = np.linalg.norm(apply_homography(pair.H, x0) - x1, axis=1) if len(m) else np.zeros(0)
     use = np.ones(len(m), bool)
-    if pair.region0 is not None and len(m):
-        inside = points_in_region(x0, pair.region0)
-        err[~inside] = np.inf
-        if conf.region_ransac:
-            use = inside
+    if pair.region0 is not None and len(m) and conf.region_ransac:
+        use = points_in_region(x0, pair.region0)
     H, inl = estimate_homography(x0[use], x1[use], conf)
     ce, ve = homography_errors(H, pair, conf.grid_step)
     return {

@@ -33,8 +33,7 @@ import numpy as np
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.config import HomographyConf
-from rectified_colmap.eval.homography import apply_homography, evaluate_pair, points_in_region
-from rectified_colmap.eval.matching import match_ratio
+from rectified_colmap.eval.homography import evaluate_pair, match_gt_errors
 from rectified_colmap.pipeline import ImageResult, extract_image
 from rectified_colmap.planes import BLIND_AXIS, HYPOTHESIS_AXIS, Patch
 from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
@@ -72,19 +71,6 @@ def feature_kinds(res: ImageResult) -> tuple[np.ndarray, Counter]:
     for r in res.rectifications:
         pixels[names[r.patch_index]] += r.size[0] * r.size[1]
     return kind, pixels
-
-
-def gt_consistent(case, f0: dict, f1: dict, conf: HomographyConf) -> np.ndarray:
-    """(M, 2) index pairs of the GT-consistent matches of one case (eval.homography's
-    matching and threshold; outside ``region0`` none)."""
-    m = match_ratio(f0["descriptors"], f1["descriptors"], conf.ratio, conf.mutual)
-    if not len(m):
-        return m
-    x0, x1 = f0["keypoints"][m[:, 0]], f1["keypoints"][m[:, 1]]
-    err = np.linalg.norm(apply_homography(case.H, x0) - x1, axis=1)
-    if case.region0 is not None:
-        err[~points_in_region(x0, case.region0)] = np.inf
-    return m[err < conf.gt_threshold]
 
 
 def per_pixel(matches: Counter, pixels: Counter, image_pixels: float) -> dict[str, float]:
@@ -133,7 +119,8 @@ def main(argv=None) -> int:
             verdict = {True: "solves", False: "fails"}
             cls = f"plain {verdict[plain]}, default {verdict[every]}"
             classes[cls] += 1
-            for i, j in gt_consistent(case, a[0], b[0], hconf):
+            m, err = match_gt_errors(case, a[0], b[0], hconf)
+            for i, j in m[err < hconf.gt_threshold]:
                 matches[cls]["+".join(sorted((a[2][i], b[2][j])))] += 1
     pixels, image_pixels = Counter(), sum(v[4] for v in images.values())
     for v in images.values():
