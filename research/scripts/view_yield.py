@@ -27,11 +27,11 @@ import logging
 from collections import Counter, defaultdict
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs
 from rectified_colmap.errors import run_script
+from rectified_colmap.io.images import read_image
 from rectified_colmap.eval.config import HomographyConf
 from rectified_colmap.eval.homography import evaluate_pair, match_gt_errors
 from rectified_colmap.pipeline import ImageResult, extract_image
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
 
     def features(name: str):
         if name not in images:
-            rgb = cv2.cvtColor(cv2.imread(str(args.data / name)), cv2.COLOR_BGR2RGB)
+            rgb = read_image(args.data / name)
             h, w = rgb.shape[:2]
             cam = guessed_camera(w, h)
             res = extract_image(rgb, cam, source(rgb, cam, name), conf, np.random.default_rng(0))
