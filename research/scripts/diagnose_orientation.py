@@ -41,6 +41,7 @@ from rectified_colmap.depth import DepthMap
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.homography import points_in_region
 from rectified_colmap.geometry import line_angle_deg
+from rectified_colmap.io.images import read_image
 from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
 from rectified_colmap.pipeline import image_planes, with_vanishing_points
 from rectified_colmap_research.evaluation.homography_report import write_records_csv
@@ -151,7 +152,7 @@ def main(argv=None) -> int:
     rows = []
     for q in pairs:
         for k, name in enumerate((q.im0, q.im1)):
-            rgb = cv2.cvtColor(cv2.imread(str(args.data / name)), cv2.COLOR_BGR2RGB)
+            rgb = read_image(args.data / name)
             size = (rgb.shape[1], rgb.shape[0])
             focal = 1.2 * max(size) if args.cameras == "guessed" else float(q.info[f"focal{k}"])
             roll = float(q.info[f"rotation{k}_deg"])

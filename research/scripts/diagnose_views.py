@@ -56,6 +56,7 @@ from rectified_colmap.eval.homography import (
 from rectified_colmap.features import Features
 from rectified_colmap.geometry import scaled_size
 from rectified_colmap.io.hloc_h5 import rootsift_unit
+from rectified_colmap.io.images import read_image
 from rectified_colmap.pipeline import (
     image_planes,
     image_views,
@@ -211,7 +212,7 @@ def main(argv=None) -> int:
         sets = []
         for k, name in enumerate((q.im0, q.im1)):
             camera = pair_camera(q, k, args)
-            rgb = cv2.cvtColor(cv2.imread(str(args.data / name)), cv2.COLOR_BGR2RGB)
+            rgb = read_image(args.data / name)
             gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
             normal = np.asarray(q.info[f"normal{k}"], np.float64)
             region = q.region0 if k == 0 else q.region1

@@ -68,6 +68,7 @@ from rectified_colmap.eval.homography import (
     visible_grid,
 )
 from rectified_colmap.geometry import scaled_size
+from rectified_colmap.io.images import read_image
 from rectified_colmap.pipeline import extract_image
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.asift import asift_features
@@ -180,7 +181,7 @@ def extract_method(
     cpu = {}
     with HlocFeatureWriter(tmp) as writer:
         for name in names:
-            rgb = cv2.cvtColor(cv2.imread(str(root / name)), cv2.COLOR_BGR2RGB)
+            rgb = read_image(root / name)
             cam = cameras[name]
             depth = None
             t0 = time.process_time()
