@@ -2,6 +2,9 @@
 
 from rectified_colmap_research.evaluation.homography_report import (
     label_order,
+    paired_markdown,
+    pairs_solved,
+    sign_test_p,
     solved_pairs,
     split_group_markdown,
     split_names,
@@ -82,3 +85,29 @@ def test_group_table_gives_each_class_per_half():
     assert row(text, "4-8", "m2")[2:5] == ["0 of 1", "0 of 1", "0 of 2"]
     assert row(text, "<2", "m2")[2:5] == ["1 of 1", "0 of 0", "1 of 1"]
     assert row(text, "<2", "m2")[5:8] == ["35", "-", "35"]
+
+
+def test_pairs_solved_either_direction_per_method():
+    assert pairs_solved(RECORDS, "m1") == {"a": True, "b": False, "c": True}
+    assert pairs_solved(RECORDS, "m2") == {"a": False, "b": True, "c": False}
+    assert pairs_solved(RECORDS, "none") == {}
+
+
+def test_sign_test_p_is_the_exact_two_sided_binomial_tail():
+    assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 3) == 1.0
+    assert sign_test_p(5, 0) == sign_test_p(0, 5) == 2 / 32  # 0.0625
+    assert sign_test_p(4, 1) == 2 * (1 + 5) / 32
+    assert sign_test_p(10, 0) < 0.002 and sign_test_p(6, 5) == 1.0
+
+
+def test_paired_markdown_names_the_gained_and_lost_pairs_per_half():
+    base = pairs_solved(RECORDS, "m1")  # a, c
+    new = pairs_solved(RECORDS, "m2")  # b
+    new["d"] = True  # in one run only: left out
+    text = paired_markdown(base, new, SPLITS, ("m1", "m2"))
+    assert text.startswith("3 pairs in both runs (1 in one only)")
+    assert row(text, "choose") == ["choose", "2", "1", "1", "0", "1", "1", "1", "b", "a"]
+    assert row(text, "check") == ["check", "1", "1", "0", "0", "0", "1", "1", "-", "c"]
+    assert row(text, "all")[:8] == ["all", "3", "2", "1", "0", "1", "2", "1"]
+    assert row(text, "all")[8:] == ["b", "a c"]
+    assert row(paired_markdown(base, base), "all")[5:8] == ["0", "0", "1"]  # no split: all

@@ -19,6 +19,7 @@ RESEARCH = Path(__file__).resolve().parents[1]
         ("eval_strecha.py", ["--data", "{x}", "--output_dir", "{t}/o", "--methods", "sift"]),
         ("benchmark.py", ["--image_path", "{x}"]),
         ("bench_sift_backends.py", ["--image_path", "{x}"]),
+        ("compare_homography.py", ["{x}", "{x}"]),
     ],
 )
 def test_scripts_report_a_missing_input_in_one_line(tmp_path, script, args):

@@ -12,6 +12,7 @@ direction is (as in :func:`rectified_colmap.eval.homography.homography_markdown`
 from __future__ import annotations
 
 import csv
+import math
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -136,4 +137,59 @@ def split_group_markdown(
             cells = ["{} of {}".format(*solved_pairs(_subset(rs, splits, s))) for s in names]
             gts = [_median_gt(_subset(rs, splits, s)) for s in names]
             lines.append(f"| {v} | {m} | {' | '.join(cells)} | {' | '.join(gts)} |")
+    return "\n".join(lines) + "\n"
+
+
+def pairs_solved(records: list[dict], method: str) -> dict[str, bool]:
+    """Pair name -> solved in either direction, for ``method``'s records."""
+    out: dict[str, bool] = {}
+    for r in records:
+        if r["method"] == method:
+            out[r["pair"]] = out.get(r["pair"], False) or bool(r["success"])
+    return out
+
+
+def sign_test_p(gained: int, lost: int) -> float:
+    """Two-sided exact sign test of the discordant pairs (a pair one method solves and the
+    other not): the probability, were each equally likely to fall either way, of a split at
+    least this uneven (1 for a tie or none)."""
+    n, k = gained + lost, min(gained, lost)
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
+    return min(1.0, 2.0 * tail)
+
+
+def paired_markdown(
+    base: dict[str, bool],
+    new: dict[str, bool],
+    splits: Mapping[str, str] | None = None,
+    labels: tuple[str, str] = ("base", "new"),
+) -> str:
+    """Solved pairs of two runs on the same pairs (``pairs_solved``), pair by pair, per
+    half and in all: solved by each, by both, the discordant pairs (gained: only ``new``;
+    lost: only ``base``) with their names and the sign test's p (``sign_test_p``). A
+    difference of a few pairs in one half is often no more than the luck of which pairs
+    fell there: this says how uneven the discordant pairs are. Pairs in only one run are
+    left out (counted in the header line)."""
+    common = sorted(set(base) & set(new))
+    splits = splits or {}
+    records = [{"pair": p} for p in common]
+    lines = [
+        f"{len(common)} pairs in both runs ({len(set(base) ^ set(new))} in one only)",
+        "",
+        f"| half | pairs | {labels[0]} | {labels[1]} | both | gained | lost | sign test p "
+        "| gained pairs | lost pairs |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s in split_names(records, splits if splits else None):
+        ps = [r["pair"] for r in _subset(records, splits, s)]
+        gained = [p for p in ps if new[p] and not base[p]]
+        lost = [p for p in ps if base[p] and not new[p]]
+        both = sum(base[p] and new[p] for p in ps)
+        lines.append(
+            f"| {s} | {len(ps)} | {sum(base[p] for p in ps)} | {sum(new[p] for p in ps)} | "
+            f"{both} | {len(gained)} | {len(lost)} | {sign_test_p(len(gained), len(lost)):.3g} "
+            f"| {' '.join(gained) or '-'} | {' '.join(lost) or '-'} |"
+        )
     return "\n".join(lines) + "\n"
