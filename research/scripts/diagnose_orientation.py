@@ -88,7 +88,9 @@ def upright_turns(roll_deg: float) -> int:
 
 
 def image_errors(rgb, camera, normal, region, roll_deg, network, conf) -> dict[str, float]:
-    """The four errors of the module docstring for one image."""
+    """The four errors of the module docstring for one image, and two counts that need no
+    ground truth (``num_hypotheses``, ``num_turned_by_lines``: whether the lines gave the
+    image any orientation of their own)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     rng = np.random.default_rng(0)
     depth = network(rgb, camera)
@@ -99,6 +101,13 @@ def image_errors(rgb, camera, normal, region, roll_deg, network, conf) -> dict[s
     out["lines"] = best_patch_error(lined.patches, on_plane, normal)
     hyps = [p for p in lined.patches if p.axis == HYPOTHESIS_AXIS]
     out["hypotheses"] = best_patch_error(hyps, on_plane, normal)
+    # what the image itself shows, without the true plane: how many plane hypotheses the
+    # lines gave, how many of the network's patches they turned by more than a degree
+    out["num_hypotheses"] = len(hyps)
+    turned = [
+        line_angle_deg(a.normal, b.normal) > 1.0 for a, b in zip(planes.patches, lined.patches)
+    ]
+    out["num_turned_by_lines"] = int(sum(turned))
     k = upright_turns(roll_deg)
     if k == 0:
         out["upright"] = out["network"]
