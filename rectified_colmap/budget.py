@@ -23,12 +23,16 @@ left unused (:func:`unused_room`), as the features of views over the rest of a p
 (planes.REST_AXIS: a plane hypothesis over the cells the depth's patches of its
 orientation leave out); blind views' features (planes.BLIND_AXIS: an image whose estimates
 gave no view that adds features) come after all of these, in what is left
-(:func:`blind_room`). A look-alike can crowd a plain feature's match out of
+(:func:`blind_room`); where the image's lines confirm none of its plane estimates, with a
+share of the pixels and of the room held for them (:func:`blind_share`,
+:func:`without_share`). A look-alike can crowd a plain feature's match out of
 the ratio test; where plain SIFT fills its budget (a textured photo, whose moderate pairs
 plain SIFT matches) none is kept, where it leaves budget unused (a small or sparse image, a
 strongly foreshortened view) they may fill what plain SIFT did not use."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -102,6 +106,39 @@ def wants_blind_views(added: int, plain_count: int, conf: ExtractConf) -> bool:
     ``BLIND_YIELD_FRAC`` x ``plain_count`` (0 where it has no view) and plain SIFT left part
     of its budget unused (``unused_room``: the blind views are second tier)."""
     return unused_room(plain_count, conf) > 0 and added <= BLIND_YIELD_FRAC * plain_count
+
+
+UNSUPPORTED_BLIND_SHARE = 0.5
+"""The share of an image's view pixels and rectified room held for its blind views where
+its lines gave its planes no orientation of their own (``blind_share``). Not chosen on
+data: an even split between an estimate nothing confirms and the blind bank, the only
+value tried (2026-12-07, stop 65, research log)."""
+
+
+def blind_share(plain_count: int, supported: bool, conf: ExtractConf) -> float:
+    """The share of an image's view pixels (``view_pixel_budget``) and of its rectified
+    room (``rectified_room``) held for blind views (views.blind_patches) beside the views of
+    its plane estimates: ``UNSUPPORTED_BLIND_SHARE`` where the estimates are not
+    ``supported`` by the image's lines (pipeline.lines_support: no plane hypothesis, no
+    depth plane snapped to a vanishing direction) and plain SIFT's ``plain_count`` keypoints
+    leave part of its budget unused (``unused_room``: blind views are second tier), else 0.
+    Such an estimate is the network's alone, which on the generated pairs errs by 30 degrees
+    at the median; its views still add features, so that ``wants_blind_views`` sees nothing
+    wrong, and they fill the room, which left blind views, coming last (``blind_room``),
+    nothing to add."""
+    if supported or unused_room(plain_count, conf) == 0:
+        return 0.0
+    return UNSUPPORTED_BLIND_SHARE
+
+
+def without_share(conf: ExtractConf, share: float) -> ExtractConf:
+    """``conf`` for the estimates' views when blind views take ``share`` (``blind_share``):
+    the rectified room (``dedup.extra_frac``) cut to 1 - ``share`` of it (``conf`` itself
+    for 0)."""
+    if share == 0:
+        return conf
+    dedup = replace(conf.dedup, extra_frac=conf.dedup.extra_frac * (1.0 - share))
+    return replace(conf, dedup=dedup)
 
 
 def blind_room(count: int, plain_count: int, conf: ExtractConf) -> int:

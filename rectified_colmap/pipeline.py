@@ -10,8 +10,8 @@ run a variant of one step and the others as they are.
 Guarantee: the output holds exactly plain COLMAP SIFT's features with the same options (the
 same call, the same budget), and rectified features on top; with no depth, or no usable
 plane where plain SIFT fills its budget, it is exactly plain SIFT (where it leaves part
-unused, an image with no view, or views that add almost nothing, gets blind ones:
-``views_and_features``).
+unused, an image with no view, views that add almost nothing, or planes its lines do not
+confirm, gets blind ones: ``views_and_features``).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import pycolmap
 
 from .budget import (
     blind_room,
+    blind_share,
     cut_to_room,
     fits_either_tier,
     largest_scales,
@@ -34,6 +35,7 @@ from .budget import (
     view_budgets,
     view_pixel_budget,
     wants_blind_views,
+    without_share,
 )
 from .config import ExtractConf
 from .dedup import distinct_from_plain, lookalikes
@@ -125,9 +127,12 @@ def extract_image(
     planes, normals = image_planes(camera, depth, conf, rng, t)
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift, sift)
-    planes = with_vanishing_points(gray, camera, planes, conf, rng, t, len(plain))
-    shape = planes.labels.shape
-    views, features = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift, t)
+    lined = with_vanishing_points(gray, camera, planes, conf, rng, t, len(plain))
+    supported = not conf.vp.enabled or lines_support(planes, lined)
+    planes, shape = lined, lined.labels.shape
+    views, features = views_and_features(
+        gray, camera, planes.patches, shape, plain, conf, sift, t, supported
+    )
     planes = replace(planes, patches=views.patches)
     return ImageResult(features, planes, views.rects, views.cover, normals, t)
 
@@ -174,6 +179,18 @@ def with_vanishing_points(
         if hypotheses:
             planes = add_plane_hypotheses(camera, planes, segments, conf)
     return planes
+
+
+def lines_support(planes: PlaneResult, lined: PlaneResult) -> bool:
+    """Whether an image's lines gave its plane estimates an orientation of their own:
+    ``lined`` (``with_vanishing_points`` of ``planes``) holds a plane hypothesis
+    (HYPOTHESIS_AXIS), or a depth patch whose normal the vanishing points changed. Where
+    they did not (no lines, or lines that confirm no plane), every orientation is the
+    network's alone (budget.blind_share)."""
+    if any(p.axis == HYPOTHESIS_AXIS for p in lined.patches):
+        return True
+    pairs = zip(planes.patches, lined.patches)
+    return any(not np.array_equal(a.normal, b.normal) for a, b in pairs)
 
 
 def orient_with_vanishing_points(
@@ -257,27 +274,36 @@ def views_and_features(
     conf: ExtractConf,
     sift: Sift | None = None,
     t: dict[str, float] | None = None,
+    supported: bool = True,
 ) -> tuple[ViewSet, Features]:
     """(views, features) of an image with plane ``patches`` on its (h, w) work grid
     ``shape`` and plain SIFT's features ``plain``: the views of the patches
     (``image_views``) and their features on top of ``plain`` (``features_on_top``).
 
-    Where these views add almost nothing (budget.wants_blind_views: no view, or views of a
-    wrong estimate over blank or blurred pixels) and plain SIFT left part of its budget
-    unused, the image gets blind views beside them (views.blind_patches: ASIFT's tilts,
-    planned with the image's whole pixel budget), whose features come on top of all the
-    others (``blind_on_top``: none of those changes): the network calls many oblique planes
-    frontal, and an image with no working view cannot meet an oblique one.
-    ``dedup.lookalikes_in_unused_budget`` false: no blind views."""
+    Blind views (views.blind_patches: ASIFT's tilts) come beside them, their features on
+    top of all the others (``blind_on_top``: none of those changes), where plain SIFT left
+    part of its budget unused and either the patches are not ``supported`` by the image's
+    lines (``lines_support``; budget.blind_share: a share of the pixels and of the room is
+    held for the blind views) or their views add almost nothing (budget.wants_blind_views:
+    no view, or views of a wrong estimate over blank or blurred pixels). The blind views get
+    the pixels the others leave: the network calls many oblique planes frontal, and an image
+    with no working view cannot meet an oblique one. ``dedup.lookalikes_in_unused_budget``
+    false: no blind views."""
     t = {} if t is None else t
+    share = blind_share(len(plain), supported, conf)
+    own = without_share(conf, share)
+    pixels = view_pixel_budget(gray.shape, conf)
     with timed(t, "homographies"):
-        views = image_views(gray, camera, patches, shape, len(plain), conf)
-    rectified = views_features(gray, camera, views, len(plain), conf, sift, t)
-    features = with_rectified(plain, rectified, views, conf, t)
-    if not wants_blind_views(len(features) - len(plain), len(plain), conf):
+        views = image_views(gray, camera, patches, shape, len(plain), own, (1 - share) * pixels)
+    rectified = views_features(gray, camera, views, len(plain), own, sift, t)
+    features = with_rectified(plain, rectified, views, own, t)
+    if not share and not wants_blind_views(len(features) - len(plain), len(plain), conf):
         return views, features
     with timed(t, "homographies"):
-        blind = image_views(gray, camera, blind_patches(camera, shape), shape, len(plain), conf)
+        used = sum(r.size[0] * r.size[1] for r in views.rects)
+        blind_pixels = max(share * pixels, pixels - used) if share else pixels
+        blind_views = blind_patches(camera, shape)
+        blind = image_views(gray, camera, blind_views, shape, len(plain), conf, blind_pixels)
     more = views_features(gray, camera, blind, len(plain), conf, sift, t)
     more.patch[more.patch >= 0] += len(views.patches)
     with timed(t, "dedup"):

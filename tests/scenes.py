@@ -9,9 +9,11 @@ from rectified_colmap_research import synth
 from rectified_colmap.eval.pairs import Pair
 
 
-SINGLE_VIEW = {"vp": {"line_hypotheses": 0}, "rectify": {"tilt_steps": 0}}
-"""Conf overrides for one rectified view per depth patch: no plane hypotheses from
-vanishing points, no tilt neighbours (tests of one view's geometry and budget)."""
+SINGLE_VIEW = {"vp": {"enabled": False, "line_hypotheses": 0}, "rectify": {"tilt_steps": 0}}
+"""Conf overrides for one rectified view per depth patch: no lines (no orientation from
+vanishing points, no plane hypotheses, so no blind views for planes the lines do not
+confirm: budget.blind_share), no tilt neighbours (tests of one view's geometry and
+budget)."""
 
 
 def _view(scene, camera, pose):

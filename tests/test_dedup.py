@@ -6,6 +6,8 @@ import pytest
 
 from rectified_colmap import camera as cam_utils
 from rectified_colmap.budget import (
+    UNSUPPORTED_BLIND_SHARE,
+    blind_share,
     BLIND_YIELD_FRAC,
     OPENCV_VIEW_PIXELS_RATIO,
     cut_to_room,
@@ -17,6 +19,7 @@ from rectified_colmap.budget import (
     view_budgets,
     view_pixel_budget,
     wants_blind_views,
+    without_share,
 )
 from rectified_colmap.config import DedupConf, ExtractConf, merge_conf
 from rectified_colmap.sift import opencv_views
@@ -494,3 +497,21 @@ def test_blind_features_come_on_top_of_every_kept_feature_within_what_is_left():
     out = blind_on_top(plain, others, 6, conf)  # room 4 (blind_room): all four, in order
     assert blind_room(6, 6, conf) == 4
     np.testing.assert_array_equal(out.keypoints[6:, 0], [300.0, 400.0, 500.0, 600.0])
+
+
+def test_blind_share_where_the_lines_confirm_no_plane_and_plain_sift_leaves_budget():
+    """budget.blind_share: UNSUPPORTED_BLIND_SHARE for an image whose plane estimates its
+    lines do not support, where plain SIFT left part of its budget unused (the blind views
+    are second tier); 0 where the lines support them, where plain SIFT fills its budget, and
+    with the second tier off. without_share cuts the estimates' views' room by that share
+    (conf itself for 0), so that the two together keep the image's room."""
+    conf = ExtractConf()
+    conf.sift.max_num_features = 1000
+    assert blind_share(800, True, conf) == 0.0 and without_share(conf, 0.0) is conf
+    assert blind_share(800, False, conf) == UNSUPPORTED_BLIND_SHARE == 0.5
+    assert blind_share(1000, False, conf) == 0.0 and blind_share(1200, False, conf) == 0.0
+    own = without_share(conf, 0.25)
+    assert rectified_room(800, own) == 375 and rectified_room(800, conf) == 500
+    assert conf.dedup.extra_frac == 0.5  # conf itself unchanged
+    conf.dedup.lookalikes_in_unused_budget = False
+    assert blind_share(800, False, conf) == 0.0

@@ -320,3 +320,59 @@ def test_sift_conf_is_plain_sift_whatever_the_depth():
     np.testing.assert_array_equal(res.features.keypoints, plain.features.keypoints)
     np.testing.assert_array_equal(res.features.descriptors, plain.features.descriptors)
     assert extract_image(view["image"], camera, depth).rectifications  # the default rectifies
+
+
+def test_planes_the_lines_do_not_confirm_share_their_pixels_and_room_with_blind_views(texture):
+    """An oblique textured plane without straight lines: its depth plane's view comes with
+    blind views (BLIND_AXIS: lines_support is False, budget.blind_share), the depth view
+    within 1 - UNSUPPORTED_BLIND_SHARE of the pixel budget and the blind ones within what it
+    leaves (to a view's border), every plain feature kept first and the rectified ones
+    within the room. Without lines in the conf (vp.enabled false): the depth view alone.
+    Where plain SIFT fills its budget, the same features either way."""
+    from rectified_colmap.budget import UNSUPPORTED_BLIND_SHARE, rectified_room, view_pixel_budget
+
+    R, t = look_at([0.5, -5, 3.5], [0, 0, 0])
+    img, z = plane_view(texture, 0.01, K, R, t, SIZE)
+    depth = DepthMap(z, "metric")
+    lines = {"vp": {"line_hypotheses": 0}, "rectify": {"tilt_steps": 0}}
+    conf = ExtractConf.from_dict(lines)
+    plain = detect_sift(img)
+    res = extract_image(img, CAMERA, depth, conf)
+    axes = np.array([res.planes.patches[r.patch_index].axis for r in res.rectifications])
+    pixels = np.array([r.size[0] * r.size[1] for r in res.rectifications], float)
+    budget = view_pixel_budget(img.shape, conf)
+    blind = axes == BLIND_AXIS
+    assert blind.any() and (~blind).sum() == 1
+    assert pixels[~blind].sum() <= (1 - UNSUPPORTED_BLIND_SHARE) * budget
+    border = 2 * conf.rectify.border * np.sqrt(pixels).sum()  # tiny views' borders
+    assert pixels.sum() <= budget + border
+    f = res.features
+    np.testing.assert_array_equal(f.keypoints[: len(plain)], plain.keypoints)
+    assert (f.patch[: len(plain)] < 0).all() and (f.patch[len(plain) :] >= 0).all()
+    assert len(f) - len(plain) <= rectified_room(len(plain), conf)
+    blind_patches = [r.patch_index for r, b in zip(res.rectifications, blind) if b]
+    assert np.isin(f.patch, blind_patches).any()  # blind features kept
+    alone = extract_image(img, CAMERA, depth, ExtractConf.from_dict(SINGLE_VIEW))
+    assert len(alone.rectifications) == 1
+    full = {"sift": {"max_num_features": len(plain) // 2}}
+    a = extract_image(img, CAMERA, depth, ExtractConf.from_dict({**lines, **full}))
+    b = extract_image(img, CAMERA, depth, ExtractConf.from_dict({**SINGLE_VIEW, **full}))
+    np.testing.assert_array_equal(a.features.keypoints, b.features.keypoints)
+    np.testing.assert_array_equal(a.features.descriptors, b.features.descriptors)
+
+
+def test_lines_support_is_a_hypothesis_or_a_normal_the_lines_changed():
+    """pipeline.lines_support: True where the lines added a plane hypothesis or turned a
+    depth patch's normal; False where they left every patch as the depth gave it."""
+    from rectified_colmap.planes import HYPOTHESIS_AXIS
+
+    mask = np.ones((4, 5), bool)
+    depth_patch = Patch(mask, 0, np.array([0.0, 0.0, -1.0]), 1.0)
+    planes = types.SimpleNamespace(patches=[depth_patch])
+    same = types.SimpleNamespace(patches=[Patch(mask, 0, np.array([0.0, 0.0, -1.0]), 1.0)])
+    assert not pipeline.lines_support(planes, same)
+    turned = Patch(mask, 0, np.array([0.0, 0.1, -1.0]) / np.hypot(0.1, 1.0), 1.0)
+    assert pipeline.lines_support(planes, types.SimpleNamespace(patches=[turned]))
+    hyp = Patch(mask, HYPOTHESIS_AXIS, np.array([1.0, 0.0, -1.0]) / np.sqrt(2), 1.0)
+    assert pipeline.lines_support(planes, types.SimpleNamespace(patches=[depth_patch, hyp]))
+    assert not pipeline.lines_support(types.SimpleNamespace(patches=[]), planes)
