@@ -60,6 +60,7 @@ from rectified_colmap.io.images import read_image
 from rectified_colmap.pipeline import (
     image_planes,
     image_views,
+    lines_support,
     rectified_to_keep,
     view_sift_budgets,
     views_and_features,
@@ -85,7 +86,8 @@ def one_image_views(
 ):
     """(views, views without a pixel budget or None, the pipeline's features) of one image
     with plain SIFT's features ``plain`` (pipeline.views_and_features: blind views where
-    the others add almost nothing; the uncapped views likewise): from the exact depth of its
+    the others add almost nothing or the lines confirm no plane; the uncapped views where
+    the others add almost nothing): from the exact depth of its
     true plane within its region (``network`` None) or from the network's depth with the
     conf's vanishing points."""
     if network is None:
@@ -94,9 +96,12 @@ def one_image_views(
     else:
         depth = network(rgb, camera, "")
     planes, _ = image_planes(camera, depth, conf, rng, {})
-    planes = with_vanishing_points(gray, camera, planes, conf, rng, {})
-    shape = planes.labels.shape
-    views, final = views_and_features(gray, camera, planes.patches, shape, plain, conf, sift)
+    lined = with_vanishing_points(gray, camera, planes, conf, rng, {})
+    supported = not conf.vp.enabled or lines_support(planes, lined)  # as extract_image
+    planes, shape = lined, lined.labels.shape
+    views, final = views_and_features(
+        gray, camera, planes.patches, shape, plain, conf, sift, None, supported
+    )
     if not uncapped:
         return views, None, final
     loose = dataclasses.replace(conf, rectify=dataclasses.replace(conf.rectify, **UNCAPPED))
