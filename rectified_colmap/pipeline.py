@@ -128,7 +128,7 @@ def extract_image(
     with timed(t, "sift_plain"):
         plain = plain_sift(gray, conf.sift, sift)
     lined = with_vanishing_points(gray, camera, planes, conf, rng, t, len(plain))
-    supported = not conf.vp.enabled or lines_support(planes, lined)
+    supported = lines_support(planes, lined, conf)
     planes, shape = lined, lined.labels.shape
     views, features = views_and_features(
         gray, camera, planes.patches, shape, plain, conf, sift, t, supported
@@ -181,13 +181,14 @@ def with_vanishing_points(
     return planes
 
 
-def lines_support(planes: PlaneResult, lined: PlaneResult) -> bool:
+def lines_support(planes: PlaneResult, lined: PlaneResult, conf: ExtractConf) -> bool:
     """Whether an image's lines gave its plane estimates an orientation of their own:
     ``lined`` (``with_vanishing_points`` of ``planes``) holds a plane hypothesis
     (HYPOTHESIS_AXIS), or a depth patch whose normal the vanishing points changed. Where
     they did not (no lines, or lines that confirm no plane), every orientation is the
-    network's alone (budget.blind_share)."""
-    if any(p.axis == HYPOTHESIS_AXIS for p in lined.patches):
+    network's alone (budget.blind_share). True with the lines off (``conf.vp.enabled``
+    false: the depth's planes are used as they are, nothing is tested)."""
+    if not conf.vp.enabled or any(p.axis == HYPOTHESIS_AXIS for p in lined.patches):
         return True
     pairs = zip(planes.patches, lined.patches)
     return any(not np.array_equal(a.normal, b.normal) for a, b in pairs)

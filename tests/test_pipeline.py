@@ -366,13 +366,14 @@ def test_lines_support_is_a_hypothesis_or_a_normal_the_lines_changed():
     depth patch's normal; False where they left every patch as the depth gave it."""
     from rectified_colmap.planes import HYPOTHESIS_AXIS
 
+    conf = ExtractConf()  # the lines on (vp.enabled)
     mask = np.ones((4, 5), bool)
     depth_patch = Patch(mask, 0, np.array([0.0, 0.0, -1.0]), 1.0)
     planes = types.SimpleNamespace(patches=[depth_patch])
     same = types.SimpleNamespace(patches=[Patch(mask, 0, np.array([0.0, 0.0, -1.0]), 1.0)])
-    assert not pipeline.lines_support(planes, same)
+    assert not pipeline.lines_support(planes, same, conf)
     turned = Patch(mask, 0, np.array([0.0, 0.1, -1.0]) / np.hypot(0.1, 1.0), 1.0)
-    assert pipeline.lines_support(planes, types.SimpleNamespace(patches=[turned]))
+    assert pipeline.lines_support(planes, types.SimpleNamespace(patches=[turned]), conf)
     hyp = Patch(mask, HYPOTHESIS_AXIS, np.array([1.0, 0.0, -1.0]) / np.sqrt(2), 1.0)
-    assert pipeline.lines_support(planes, types.SimpleNamespace(patches=[depth_patch, hyp]))
-    assert not pipeline.lines_support(types.SimpleNamespace(patches=[]), planes)
+    assert pipeline.lines_support(planes, types.SimpleNamespace(patches=[depth_patch, hyp]), conf)
+    assert not pipeline.lines_support(types.SimpleNamespace(patches=[]), planes, conf)

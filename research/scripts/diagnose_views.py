@@ -97,7 +97,7 @@ def one_image_views(
         depth = network(rgb, camera, "")
     planes, _ = image_planes(camera, depth, conf, rng, {})
     lined = with_vanishing_points(gray, camera, planes, conf, rng, {})
-    supported = not conf.vp.enabled or lines_support(planes, lined)  # as extract_image
+    supported = lines_support(planes, lined, conf)  # as extract_image
     planes, shape = lined, lined.labels.shape
     views, final = views_and_features(
         gray, camera, planes.patches, shape, plain, conf, sift, None, supported
