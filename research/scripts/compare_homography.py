@@ -19,13 +19,13 @@ gained none and lost 5 on seed 2. Compare every set you have, by its discordant 
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 from rectified_colmap.errors import run_script
 from rectified_colmap_research.evaluation.homography_report import (
     paired_markdown,
     pairs_solved,
+    read_records_csv,
 )
 
 
@@ -37,10 +37,7 @@ def read_run(spec: str) -> tuple[dict[str, bool], dict[str, str], str]:
     csv_path = Path(path) / "records.csv" if Path(path).is_dir() else Path(path)
     if not csv_path.is_file():
         raise SystemExit(f"{csv_path}: no such records file (eval_homography.py writes one)")
-    with open(csv_path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    for r in rows:
-        r["success"] = r.get("success") == "True"
+    rows = read_records_csv(csv_path)
     solved = pairs_solved(rows, method)
     if not solved:
         have = sorted({r.get("method", "?") for r in rows})

@@ -32,6 +32,15 @@ def write_records_csv(path: Path | str, records: list[dict]) -> None:
         w.writerows(records)
 
 
+def read_records_csv(path: Path | str) -> list[dict]:
+    """Records written by :func:`write_records_csv`, as strings but ``success`` a bool."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        r["success"] = r.get("success") == "True"
+    return rows
+
+
 JOINT = " & "
 """Separator of the parts of a joint label ("2-4 & yes": eval_homography.py's ``A+B``)."""
 
