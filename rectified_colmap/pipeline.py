@@ -301,7 +301,7 @@ def views_and_features(
     if not share and not wants_blind_views(len(features) - len(plain), len(plain), conf):
         return views, features
     with timed(t, "homographies"):
-        used = sum(r.size[0] * r.size[1] for r in views.rects)
+        used = sum(r.pixels for r in views.rects)
         blind_pixels = max(share * pixels, pixels - used) if share else pixels
         blind_views = blind_patches(camera, shape)
         blind = image_views(gray, camera, blind_views, shape, len(plain), conf, blind_pixels)

@@ -52,6 +52,11 @@ class Rectification:
     """(3,) patch normal in the original camera frame (facing the camera)."""
     patch_index: int
 
+    @property
+    def pixels(self) -> int:
+        """The view's pixels, width x height (what the view budget counts)."""
+        return self.size[0] * self.size[1]
+
 
 def rectifying_rotation(normal: np.ndarray) -> np.ndarray:
     """Smallest rotation R with R @ (-normal) = (0, 0, 1)."""
@@ -75,18 +80,31 @@ def _rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.nda
     Xv = rays @ R.T
     zi = 1.0 / Xv[:, 2]
     u = Xv[:, :2] * zi[:, None]
-    # d(u_i)/d(m_j) = (R[i, j] - u_i R[2, j]) / Xv_z
-    J = (R[None, :2, :2] - u[:, :, None] * R[None, 2:3, :2]) * zi[:, None, None]
+    # d(u_i)/d(m_j) = (R[i, j] - u_i R[2, j]) / Xv_z, entry by entry (1-D arrays: faster
+    # than broadcasting over (N, 2, 2))
+    J = np.empty((len(rays), 2, 2))
+    for i in range(2):
+        for j in range(2):
+            J[:, i, j] = (R[i, j] - u[:, i] * R[2, j]) * zi
     return u, J
 
 
-def _image_to_ray_jacobian(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
-    """d(ray xy)/d(image xy) (N, 2, 2): analytic for pinhole cameras, central differences
-    through the camera's undistortion otherwise."""
+def _image_to_view_jacobian(camera: pycolmap.Camera, Ju: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """d(u)/d(image xy) (N, 2, 2) at the COLMAP pixels ``xy`` (N, 2), from ``Ju`` =
+    d(u)/d(ray xy) (N, 2, 2) there: Ju @ d(ray xy)/d(image xy). A pinhole camera's is
+    K^-1's 2 x 2 part, diagonal in COLMAP's models: a scaling of Ju's columns, the numbers
+    of the product (its zero terms add nothing to finite Ju) without a product per cell."""
     if cam_utils.is_pinhole(camera):
-        K = cam_utils.calibration_matrix(camera)
-        Ki = np.linalg.inv(K)[:2, :2]
-        return np.broadcast_to(Ki, (len(xy), 2, 2))
+        Ki = np.linalg.inv(cam_utils.calibration_matrix(camera))[:2, :2]
+        if Ki[0, 1] == 0 and Ki[1, 0] == 0:
+            return Ju * np.diag(Ki)
+        return Ju @ Ki
+    return Ju @ _image_to_ray_jacobian(camera, xy)
+
+
+def _image_to_ray_jacobian(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
+    """d(ray xy)/d(image xy) (N, 2, 2) by central differences through the camera's
+    undistortion (cameras with distortion; ``_image_to_view_jacobian`` has pinholes')."""
     h = 1e-3
     J = np.empty((len(xy), 2, 2))
     for j in range(2):
@@ -237,7 +255,8 @@ def patch_view(
     sx, sy = camera.width / gw, camera.height / gh
     # The cells' rays (z = 1), component-wise: 1-D arrays are several times faster here.
     grid = cam_utils.grid_rays(camera, gw, gh).reshape(-1, 3)
-    rx, ry = grid[cells, 0], grid[cells, 1]
+    whole = len(cells) == mask.size  # whole-grid patches (hypotheses, blind): no copy
+    rx, ry = (grid[:, 0], grid[:, 1]) if whole else (grid[cells, 0], grid[cells, 1])
     cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
     cos_view = -(rx * n[0] + ry * n[1] + n[2]) / np.sqrt(rx**2 + ry**2 + 1.0)
     keep = np.isfinite(cos_view) & (cos_view >= cos_max) & (cos_view > 0)
@@ -261,7 +280,7 @@ def patch_view(
     rows, cols = np.divmod(sample, gw)
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
     _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
-    J = Ju @ _image_to_ray_jacobian(camera, xy)  # d(u)/d(image xy), f = 1
+    J = _image_to_view_jacobian(camera, Ju, xy)  # d(u)/d(image xy), f = 1
     # a blind view (no estimate) compresses, as ASIFT's tilt simulation: its orientation
     # may be wrong, so it gets no more pixels than the image has there
     rule = "coarsest" if patch.axis == BLIND_AXIS else conf.view_resolution
@@ -269,7 +288,8 @@ def patch_view(
     if f is None:
         return None
     # Margin of half a work cell around the cell centres, in virtual normalised units.
-    half = np.nanmax(0.5 * np.abs(J) @ np.array([sx, sy]), axis=0)
+    # (one product over all rows: the numbers of the per-cell products, in half the time)
+    half = np.nanmax((0.5 * np.abs(J).reshape(-1, 2) @ np.array([sx, sy])).reshape(-1, 2), axis=0)
     return PatchView(
         normal=n,
         R=R,

@@ -110,13 +110,12 @@ def viewing_angles(camera: pycolmap.Camera, patches: list[Patch]) -> np.ndarray:
     if not patches:
         return np.zeros(0)
     h, w = patches[0].mask.shape
-    rays = cam_utils.unit_grid_rays(camera, w, h)
-    # every patch's cosines on the whole grid in one product, (h, w, n)
-    cos = np.clip(-(rays @ np.stack([p.normal for p in patches], 1)), -1.0, 1.0)
+    rays = cam_utils.unit_grid_rays(camera, w, h).reshape(-1, 3)
     angle = np.zeros(len(patches))
     for i, p in enumerate(patches):
-        c = cos[..., i][p.mask]
-        angle[i] = np.degrees(np.arccos(np.median(c))) if c.size else 0.0
+        cos = -(rays @ np.asarray(p.normal, float))[p.mask.ravel()]  # the grid's, then cut
+        if cos.size:
+            angle[i] = np.degrees(np.arccos(np.median(np.clip(cos, -1.0, 1.0))))
     return angle
 
 
@@ -207,10 +206,11 @@ def with_tilt_neighbours(
     its own), and ``todo`` with their indices added."""
     if conf.tilt_steps <= 0 or not todo:
         return patches, todo
-    angle = viewing_angles(camera, [patches[i] for i in todo])
+    banked = [i for i in todo if patches[i].axis in (HYPOTHESIS_AXIS, REST_AXIS)]
+    angle = viewing_angles(camera, [patches[i] for i in banked])
     patches, todo = list(patches), list(todo)
-    for i, a in zip(list(todo), angle):
-        if a < conf.tilt_bank_min_angle_deg or patches[i].axis not in (HYPOTHESIS_AXIS, REST_AXIS):
+    for i, a in zip(banked, angle):
+        if a < conf.tilt_bank_min_angle_deg:
             continue
         for p in tilt_neighbours(camera, patches[i], conf.tilt_factor, conf.tilt_steps):
             todo.append(len(patches))

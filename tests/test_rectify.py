@@ -138,6 +138,48 @@ def test_jacobian_matches_central_differences(name):
     assert rel.max() < 1e-5
 
 
+@pytest.mark.parametrize("name", list(CAMERAS))
+def test_view_jacobian_is_the_product_with_the_cameras(name):
+    """d(u)/d(image xy) of a pinhole camera (K^-1 scales Ju's columns) has exactly the
+    numbers of the product with K^-1 at every cell; a distorted camera's is the product
+    with its undistortion's central differences."""
+    from rectified_colmap.rectify import _image_to_ray_jacobian, _image_to_view_jacobian
+
+    cam = camera(name)
+    rng = np.random.default_rng(3)
+    Ju = rng.normal(size=(500, 2, 2)) * 10.0 ** rng.uniform(-3, 1, (500, 1, 1))
+    xy = rng.uniform([0, 0], [W, H], (500, 2))
+    J = _image_to_view_jacobian(cam, Ju, xy)
+    if cam_utils.is_pinhole(cam):
+        Ki = np.linalg.inv(cam_utils.calibration_matrix(cam))[:2, :2]
+        assert np.array_equal(J, Ju @ np.broadcast_to(Ki, (500, 2, 2)))
+    else:
+        assert np.allclose(J, Ju @ _image_to_ray_jacobian(cam, xy), rtol=0, atol=1e-15)
+        assert not np.allclose(
+            J, Ju * np.diag(np.linalg.inv(cam_utils.calibration_matrix(cam))[:2, :2])
+        )
+
+
+def test_viewing_angles_are_each_patchs_own_median():
+    """A patch's median viewing angle over its cells does not depend on the other patches
+    asked with it; a patch without cells gets 0."""
+    from rectified_colmap.views import viewing_angles
+
+    cam = camera("PINHOLE")
+    rng = np.random.default_rng(4)
+    masks = [rng.random((GH, GW)) < q for q in (0.1, 0.5, 1.0, 0.0)]
+    patches = [full_patch(NORMALS[i % 3], m) for i, m in enumerate(masks)]
+    rays = cam_utils.unit_grid_rays(cam, GW, GH)
+    want = [
+        np.degrees(np.arccos(np.median(-(rays[p.mask] @ p.normal)))) if p.mask.any() else 0.0
+        for p in patches
+    ]
+    assert np.allclose(viewing_angles(cam, patches), want, rtol=0, atol=1e-9)
+    alone = [viewing_angles(cam, [p])[0] for p in patches]
+    assert np.array_equal(viewing_angles(cam, patches), alone)
+    assert viewing_angles(cam, patches)[3] == 0.0 and want[0] > 10
+
+
 @pytest.mark.parametrize("rule", VIEW_RESOLUTIONS)
 def test_plan_view_resolution_and_caps(rule):
     """finest: the median smaller singular value of d(rectified)/d(image) over the patch is

@@ -518,7 +518,7 @@ def timing(scenes: list[Path], num_images: int, max_num_features: int) -> str:
                     continue
                 res = extract_depth_free(image, camera, c, LINE_ROWS[row])
                 cov = 0.0 if res.coverage is None else 100 * float((res.coverage >= 0).mean())
-                warped = sum(r.size[0] * r.size[1] for r in res.rectifications)
+                warped = sum(r.pixels for r in res.rectifications)
                 rows[m].append(
                     (
                         time.perf_counter() - t,

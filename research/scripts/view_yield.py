@@ -69,7 +69,7 @@ def feature_kinds(res: ImageResult) -> tuple[np.ndarray, Counter]:
     kind[rect] = [names[i] for i in res.features.patch[rect]]
     pixels = Counter()
     for r in res.rectifications:
-        pixels[names[r.patch_index]] += r.size[0] * r.size[1]
+        pixels[names[r.patch_index]] += r.pixels
     return kind, pixels
 
 
