@@ -193,16 +193,19 @@ def _pair_size(item: dict, key: str, name: str, image_root, where: str) -> tuple
 
 
 def _pair_regions(item: dict, H: np.ndarray, conv: str, where: str):
-    """(H, region0, region1) of a pair file's entry: H with the sign positive_homography
-    takes from the region the entry gives (region0's vertices; or region1's, whose sign
-    through H^-1 is H's), else from image 0's centre; each region as given, the missing one
-    mapped from the other through H (None, None without a region)."""
+    """(H, region0, region1) of a pair file's entry: H with the sign of the regions the
+    entry gives (both: ``overlap_positive_homography``; one: ``positive_homography`` of
+    region0's vertices, or of region1's, whose sign through H^-1 is H's), else of image 0's
+    centre; each region as given, the missing one mapped from the other through H (None,
+    None without a region)."""
     region0 = region1 = None
     if "region0" in item:
         region0 = _read_region(item["region0"], None, conv, where)
     if "region1" in item:
         region1 = _read_region(item["region1"], None, conv, where)
-    if region0 is not None:
+    if region0 is not None and region1 is not None:
+        H = overlap_positive_homography(H, region0, region1)
+    elif region0 is not None:
         H = positive_homography(H, points0=np.concatenate(region0))
     elif region1 is not None:
         H = np.linalg.inv(positive_homography(np.linalg.inv(H), points0=np.concatenate(region1)))
@@ -217,6 +220,32 @@ def _pair_regions(item: dict, H: np.ndarray, conv: str, where: str):
         if not all(np.isfinite(p).all() for p in region0):
             raise ValueError(f"{where}: region1 maps behind camera 0; give region0")
     return H, region0, region1
+
+
+def overlap_positive_homography(
+    H: np.ndarray, region0: list[np.ndarray], region1: list[np.ndarray], n: int = 64
+) -> np.ndarray:
+    """H up to scale, with the sign under which the points of ``region0`` (the plane in
+    image 0) that H maps into ``region1`` (the plane in image 1) map to w > 0: on an
+    n x n grid over region0's box. Exact by construction: a plane's points in front of
+    camera 1 project to one side of its horizon line, those behind it to the other, and
+    region1 holds only points seen in front; so only the right sign maps any point of
+    region0 into region1 with w > 0. Needed where region0 reaches beyond camera 1's horizon
+    (a texture seen whole by an oblique view 0), where most of its vertices may map behind
+    camera 1. Where the regions do not overlap: ``positive_homography`` of region0's
+    vertices."""
+    vertices = np.concatenate(region0)
+    lo, hi = vertices.min(0), vertices.max(0)
+    u, v = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n))
+    g = np.stack([u.ravel(), v.ravel()], 1)
+    g = g[points_in_region(g, region0)]
+    w = np.c_[g, np.ones(len(g))] @ H.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inside = points_in_region(w[:, :2] / w[:, 2:], region1)
+    front, behind = np.sum(inside & (w[:, 2] > 0)), np.sum(inside & (w[:, 2] < 0))
+    if front == behind:
+        return positive_homography(H, points0=vertices)
+    return H if front > behind else -H
 
 
 def positive_homography(H: np.ndarray, size0=None, points0: np.ndarray | None = None) -> np.ndarray:

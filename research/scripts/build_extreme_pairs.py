@@ -89,7 +89,8 @@ def pair_record(name: str, src: Source, d: DrawnPair, tex_size, conf: ExtremeCon
         "pair": name,
         "im0": f"images/{name}_0.jpg",
         "im1": f"images/{name}_1.jpg",
-        "H": to_opencv_homography(d.H / d.H[2, 2]).tolist(),
+        # its sign kept (w > 0 where both cameras see the plane): H[2, 2] may be negative
+        "H": to_opencv_homography(d.H / abs(d.H[2, 2])).tolist(),
         "convention": "opencv",
         "size0": list(p0.size),
         "size1": list(p1.size),

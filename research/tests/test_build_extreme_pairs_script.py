@@ -70,6 +70,9 @@ def test_build_is_deterministic_and_its_files_are_exact(sources, tmp_path):
         # the file's conventions: the anchor's two images, and H between them
         a0, a1 = (from_opencv_points(np.array(r[f"anchor{k}"])) for k in (0, 1))
         np.testing.assert_allclose(apply_homography(p.H, a0[None])[0], a1, atol=0.02)
+        # ... with its sign: the anchor, seen by both cameras, maps to w > 0, as read
+        raw = np.array(r["H"]) @ np.r_[r["anchor0"], 1.0]
+        assert raw[2] > 0 and np.sign(abs(r["H"][2][2]) * p.H[2, 2]) == np.sign(r["H"][2][2])
         K0, K1 = (np.array(r[f"K{k}"]) for k in (0, 1))
         for K, size in ((K0, p.size0), (K1, p.size1)):
             np.testing.assert_allclose(from_opencv_points(K[:2, 2]), np.array(size) / 2)

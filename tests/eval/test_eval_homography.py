@@ -122,6 +122,45 @@ def test_sign_from_the_region_where_the_centre_sees_the_plane_behind_camera_1(
     assert homography_errors(p.H, p)[1] == 0.0  # the corners: some lie beyond the horizon
 
 
+@pytest.mark.parametrize("file_sign", [1.0, -1.0])
+def test_sign_from_the_overlap_where_most_of_region0_lies_behind_camera_1(tmp_path, file_sign):
+    """region0 the ground as image 0 sees it up to 40 m (three of its five vertices beyond
+    camera 1, so they map to w < 0 and their majority gave the wrong sign), region1 the
+    ground camera 1 sees (the 2-6 m strip): the sign comes from the points region0 and
+    region1 share, whatever the file's."""
+    H, near = facing_cameras_over_ground()
+
+    def row(z):  # as in facing_cameras_over_ground
+        a = np.deg2rad(3.0)
+        return 240 + 500 * (20 * np.sin(a) / z - np.sin(a)) / np.cos(a)
+
+    region0 = np.array(
+        [[100.0, row(2)], [540, row(2)], [600, row(20)], [320, row(40)], [40, row(20)]]
+    )
+    assert np.sum(np.sign(np.c_[region0, np.ones(5)] @ H[2])) < 0  # the vertices' majority
+    region1 = apply_homography(H, near)
+    item = {
+        "im0": "a",
+        "im1": "b",
+        "H": (file_sign * H / H[2, 2]).tolist(),
+        "convention": "colmap",
+        "size0": [640, 480],
+        "size1": [640, 480],
+        "region0": [region0.tolist()],
+        "region1": [region1.tolist()],
+    }
+    f = tmp_path / "pairs.json"
+    f.write_text(json.dumps([item]))
+    (p,) = read_homography_pairs(f)
+    np.testing.assert_allclose(p.H, H / abs(H[2, 2]), rtol=1e-9)
+    assert len(visible_grid(p, 20)) > 50
+    # without region1 the vertices decide (the old rule), and they decide wrongly here
+    del item["region1"]
+    f.write_text(json.dumps([item]))
+    with pytest.raises(ValueError, match="region0 maps behind camera 1"):
+        read_homography_pairs(f)
+
+
 def test_an_exact_estimate_is_solved_where_image_0s_origin_sees_the_plane_behind_camera_1():
     # OpenCV's estimate has H[2, 2] = 1: w > 0 at image 0's origin, the wrong sign here, so
     # every visible point mapped behind camera 1 and a perfect estimate failed.
