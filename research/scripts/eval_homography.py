@@ -138,11 +138,8 @@ def oracle_normals(pairs, cameras) -> dict[str, np.ndarray]:
     for p in pairs:
         K0 = cam_utils.calibration_matrix(cameras[p.im0])
         K1 = cam_utils.calibration_matrix(cameras[p.im1])
-        x0 = visible_grid(p, 20)
-        if not len(x0):  # an overlap smaller than the grid's step
-            x0 = visible_grid(p, 2)
         try:
-            n0, n1 = plane_normals_from_homography(p.H, K0, K1, x0)
+            n0, n1 = plane_normals_from_homography(p.H, K0, K1, visible_grid(p, 20))
         except ValueError as e:
             raise ValueError(f"pair {p.name}: {e}") from None
         out[p.im0], out[p.im1] = n0, n1
