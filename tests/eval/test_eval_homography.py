@@ -75,24 +75,45 @@ def test_sign_of_the_file_homography_does_not_matter(tmp_path):
     assert np.isfinite(apply_homography(p.H, x)).all()
 
 
+GROUND_TILT = np.deg2rad(3.0)
+GROUND_D = 20 * np.sin(GROUND_TILT)
+
+
+def ground_row(z):
+    """The image-0 row (COLMAP) that sees the ground at depth z (facing_cameras_over_ground)."""
+    return 240 + 500 * (GROUND_D / z - np.sin(GROUND_TILT)) / np.cos(GROUND_TILT)
+
+
 def facing_cameras_over_ground():
     """(H, region0): two cameras facing each other over a ground plane (camera 0's frame:
     the plane n . X = d), H with w = depth in camera 1 / depth in camera 0. Image 0's centre
     and origin see the plane 20 m and more away, behind camera 1 (8 m ahead, facing back),
     so they map to w < 0; region0 (the ground 2-6 m ahead) is in front of both."""
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
-    a = np.deg2rad(3.0)
-    n, d = np.array([0.0, np.cos(a), np.sin(a)]), 20 * np.sin(a)
+    n = np.array([0.0, np.cos(GROUND_TILT), np.sin(GROUND_TILT)])
     R, t = np.diag([-1.0, 1.0, -1.0]), np.array([0.0, 0.0, 8.0])
-    H = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)
-
-    def row(z):  # the image-0 row (COLMAP) that sees the ground at depth z
-        return 240 + 500 * (d / z - np.sin(a)) / np.cos(a)
-
-    region0 = np.array([[220.0, row(6)], [420, row(6)], [420, row(2)], [220, row(2)]])
+    H = K @ (R + np.outer(t, n) / GROUND_D) @ np.linalg.inv(K)
+    region0 = np.array(
+        [[220.0, ground_row(6)], [420, ground_row(6)], [420, ground_row(2)], [220, ground_row(2)]]
+    )
     assert (np.array([[320.0, 240, 1], [0, 0, 1]]) @ H[2] < 0).all()  # centre, origin
     assert (np.c_[region0, np.ones(4)] @ H[2] > 0).all()
     return H, region0
+
+
+def ground_pair_file(path, H, file_sign, **regions):
+    """``path``: a pair file of one 640 x 480 pair (COLMAP pixels), its H ``file_sign`` x
+    H / H[2, 2], and the given regions (key -> (K, 2) polygon)."""
+    item = {
+        "im0": "a",
+        "im1": "b",
+        "H": (file_sign * H / H[2, 2]).tolist(),
+        "convention": "colmap",
+        "size0": [640, 480],
+        "size1": [640, 480],
+    }
+    path.write_text(json.dumps([item | {k: [r.tolist()] for k, r in regions.items()}]))
+    return path
 
 
 @pytest.mark.parametrize("region_key", ["region0", "region1"])
@@ -103,17 +124,7 @@ def test_sign_from_the_region_where_the_centre_sees_the_plane_behind_camera_1(
     # the centre maps to w < 0 and cannot set the sign; the region must
     H, region0 = facing_cameras_over_ground()
     region = region0 if region_key == "region0" else apply_homography(H, region0)
-    item = {
-        "im0": "a",
-        "im1": "b",
-        "H": (file_sign * H / H[2, 2]).tolist(),
-        "convention": "colmap",
-        "size0": [640, 480],
-        "size1": [640, 480],
-        region_key: [region.tolist()],
-    }
-    f = tmp_path / "pairs.json"
-    f.write_text(json.dumps([item]))
+    f = ground_pair_file(tmp_path / "pairs.json", H, file_sign, **{region_key: region})
     (p,) = read_homography_pairs(f)
     np.testing.assert_allclose(p.H, H / abs(H[2, 2]), rtol=1e-9)
     np.testing.assert_allclose(p.region0[0], region0, atol=1e-6)
@@ -129,36 +140,21 @@ def test_sign_from_the_overlap_where_most_of_region0_lies_behind_camera_1(tmp_pa
     ground camera 1 sees (the 2-6 m strip): the sign comes from the points region0 and
     region1 share, whatever the file's."""
     H, near = facing_cameras_over_ground()
-
-    def row(z):  # as in facing_cameras_over_ground
-        a = np.deg2rad(3.0)
-        return 240 + 500 * (20 * np.sin(a) / z - np.sin(a)) / np.cos(a)
-
+    row = ground_row
     region0 = np.array(
         [[100.0, row(2)], [540, row(2)], [600, row(20)], [320, row(40)], [40, row(20)]]
     )
     assert np.sum(np.sign(np.c_[region0, np.ones(5)] @ H[2])) < 0  # the vertices' majority
     region1 = apply_homography(H, near)
-    item = {
-        "im0": "a",
-        "im1": "b",
-        "H": (file_sign * H / H[2, 2]).tolist(),
-        "convention": "colmap",
-        "size0": [640, 480],
-        "size1": [640, 480],
-        "region0": [region0.tolist()],
-        "region1": [region1.tolist()],
-    }
     f = tmp_path / "pairs.json"
-    f.write_text(json.dumps([item]))
-    (p,) = read_homography_pairs(f)
+    (p,) = read_homography_pairs(
+        ground_pair_file(f, H, file_sign, region0=region0, region1=region1)
+    )
     np.testing.assert_allclose(p.H, H / abs(H[2, 2]), rtol=1e-9)
     assert len(visible_grid(p, 20)) > 50
     # without region1 the vertices decide (the old rule), and they decide wrongly here
-    del item["region1"]
-    f.write_text(json.dumps([item]))
     with pytest.raises(ValueError, match="region0 maps behind camera 1"):
-        read_homography_pairs(f)
+        read_homography_pairs(ground_pair_file(f, H, file_sign, region0=region0))
 
 
 def test_an_exact_estimate_is_solved_where_image_0s_origin_sees_the_plane_behind_camera_1():
