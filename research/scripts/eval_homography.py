@@ -11,7 +11,9 @@ Reproducible benchmark behind docs/evaluation.md ("Issue 9"). For a folder with
    - ``rectsift``: the pipeline with the embedded depth network (``--depth_model``);
    - ``oracle``: the pipeline with the plane orientation taken from the ground-truth
      homography, decomposed with the guessed intrinsics (one plane over the whole image,
-     normal n0 in image 0 and R n0 in image 1): the upper bound of rectification itself;
+     normal n0 in image 0 and R n0 in image 1), the default conf otherwise: its vanishing
+     points may turn that plane and add hypotheses (a variant with ``"vp": {"enabled":
+     false, "line_hypotheses": 0}`` is the plane alone, as diagnose_views.py's ``true``);
    - ``oracle_true``: the same with the exact plane normals of the pair file (``normal0``,
      ``normal1`` in each camera's frame: scripts/build_extreme_pairs.py writes them); exact
      rectification only with the true cameras (``--cameras true``);
