@@ -343,6 +343,9 @@ def print_table(rows: dict[str, dict], k: int) -> None:
 
 def main(argv=None):
     args = parse_args(argv)
+    if "rectified" in args.methods and shutil.which("rectified-colmap") is None:
+        # before any run: the console script is what is measured, as a user runs it
+        raise ValueError("rectified-colmap is not on PATH: activate its environment")
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     tmp = Path(tempfile.mkdtemp(prefix="bench_cli_"))
     try:

@@ -41,3 +41,11 @@ def test_table_gives_the_median_of_the_rounds_ratios_and_their_range(capsys):
     line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("| rectified")][0]
     cells = [c.strip() for c in line.strip("|").split("|")]
     assert cells[1] == "5.00" and cells[3] == "4.00x" and cells[4] == "2.50-6.00x"
+
+
+def test_a_missing_console_script_stops_before_any_run(monkeypatch, tmp_path):
+    bench = load_script("bench_cli")
+    monkeypatch.setenv("PATH", str(tmp_path))  # nothing on it
+    monkeypatch.setattr(bench, "measure", lambda *a: pytest.fail("measured"))
+    with pytest.raises(ValueError, match="rectified-colmap is not on PATH"):
+        bench.main(["--synthetic", "1", "--methods", "pycolmap", "rectified"])
