@@ -253,10 +253,8 @@ def patch_view(
     if len(cells) == 0:
         return None
     sx, sy = camera.width / gw, camera.height / gh
-    # The cells' rays (z = 1), component-wise: 1-D arrays are several times faster here.
-    grid = cam_utils.grid_rays(camera, gw, gh).reshape(-1, 3)
-    whole = len(cells) == mask.size  # whole-grid patches (hypotheses, blind): no copy
-    rx, ry = (grid[:, 0], grid[:, 1]) if whole else (grid[cells, 0], grid[cells, 1])
+    grid = cam_utils.grid_rays(camera, gw, gh).reshape(-1, 3)  # rays, z = 1
+    rx, ry = grid[cells, 0], grid[cells, 1]  # component-wise: 1-D arrays are faster here
     cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
     cos_view = -(rx * n[0] + ry * n[1] + n[2]) / np.sqrt(rx**2 + ry**2 + 1.0)
     keep = np.isfinite(cos_view) & (cos_view >= cos_max) & (cos_view > 0)
@@ -287,8 +285,8 @@ def patch_view(
     f = view_focal(singular_values_2x2(J), rule)
     if f is None:
         return None
-    # Margin of half a work cell around the cell centres, in virtual normalised units.
-    # (one product over all rows: the numbers of the per-cell products, in half the time)
+    # Margin of half a work cell around the cell centres (virtual normalised units; one
+    # product over all rows: the numbers of the per-cell products, in half the time).
     half = np.nanmax((0.5 * np.abs(J).reshape(-1, 2) @ np.array([sx, sy])).reshape(-1, 2), axis=0)
     return PatchView(
         normal=n,

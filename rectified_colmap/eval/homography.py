@@ -475,37 +475,3 @@ def homography_group_markdown(
                 f"{np.median(gt):.0f} / {np.mean(gt):.1f} |"
             )
     return "\n".join(lines) + "\n"
-
-
-def plane_normals_from_homography(
-    H: np.ndarray, K0: np.ndarray, K1: np.ndarray, x0: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Oracle orientation of a planar pair: the plane normal in camera 0 and in camera 1
-    (unit, facing each camera: n . X < 0) from the ground-truth homography (COLMAP pixel
-    frames) and intrinsics K0, K1 (COLMAP convention), e.g. guessed ones.
-
-    K1^-1 H K0 = R + t n^T / d is decomposed (cv2.decomposeHomographyMat, up to 4
-    solutions); kept are those with every point of ``x0`` (image-0 pixels on the plane,
-    (N, 2)) in front of both cameras, and among them the one whose plane best reproduces
-    H (all exact solutions do; with guessed intrinsics none is exact). Returns (n0, n1)."""
-    Hn = np.linalg.inv(K1) @ H @ K0
-    Hn /= np.cbrt(np.linalg.det(Hn))  # scale of H is arbitrary (det > 0 kept)
-    _, Rs, ts, ns = cv2.decomposeHomographyMat(Hn, np.eye(3))
-    m0 = np.c_[x0, np.ones(len(x0))] @ np.linalg.inv(K0).T  # rays of camera 0 (z = 1)
-    best, best_score = None, -np.inf
-    for R, t, n in zip(Rs, ts, ns):
-        n, t = n.ravel(), t.ravel()
-        # cv2: n^T X = d > 0 for plane points X of camera 0 (d = 1): in front when n.m > 0.
-        front0 = m0 @ n > 0
-        X0 = m0 / (m0 @ n)[:, None]  # plane points with d = 1
-        X1 = X0 @ R.T + t
-        front1 = X1[:, 2] > 0
-        score = np.mean(front0 & front1)
-        if score > best_score:
-            best, best_score = (n, R), score
-    if best is None:
-        raise ValueError("no image-0 point on the plane to orient the homography's decomposition")
-    n, R = best
-    n0 = -n / np.linalg.norm(n)  # ours: facing the camera
-    n1 = R @ n0
-    return n0, n1 / np.linalg.norm(n1)

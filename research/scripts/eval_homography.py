@@ -65,7 +65,6 @@ from rectified_colmap.eval.homography import (
     HomographyConf,
     evaluate_homography_pairs,
     homography_markdown,
-    plane_normals_from_homography,
     read_homography_pairs,
     visible_grid,
 )
@@ -85,7 +84,7 @@ from rectified_colmap_research.evaluation.extreme_pairs import (
     guessed_camera,
     pinhole_camera,
 )
-from rectified_colmap_research.evaluation.oracle import plane_depth
+from rectified_colmap_research.evaluation.oracle import plane_depth, plane_normals_from_homography
 from rectified_colmap_research.evaluation.methods import (
     add_variant_argument,
     method_conf,
