@@ -270,7 +270,8 @@ RETIRED_KEYS: dict[str, str] = {
     "planes.num_restarts": _FIXED + " (planes.NUM_RESTARTS)",
     "planes.num_iters": _FIXED + " (planes.NUM_ITERS)",
     "rectify.keep_plain": _REPLACING,
-    "rectify.tilt_bank_of": "retired: tilt neighbours are always around plane hypotheses",
+    "rectify.tilt_bank_of": "retired: tilt neighbours are around plane hypotheses, and around"
+    " depth planes where plain SIFT left budget unused (pipeline.image_views)",
     "sift.patch_upsample_in_warp": "retired: views that COLMAP's SIFT runs from octave -1 are"
     " always warped at it (sift.warp_upsampling)",
     "rectify.max_patch_area_factor": _VIEW_BUDGET,

@@ -260,10 +260,16 @@ def image_views(
 ) -> ViewSet:
     """The views (views.plan_views) of an image's plane ``patches`` on its (h, w) work grid
     ``shape``, where plain SIFT keeps ``plain_count`` keypoints (``patches_with_room``),
-    within ``pixel_budget`` pixels (default: budget.view_pixel_budget)."""
+    within ``pixel_budget`` pixels (default: budget.view_pixel_budget). The depth planes'
+    oblique views get tilt neighbours (views.with_tilt_neighbours) only where plain SIFT
+    left part of its budget unused, as the views of ``UNUSED_BUDGET_AXES``: where it fills
+    its budget they cost moderate pairs more than they gave (research log, session 37);
+    where it does not they hedge the network's orientation error (stop 67)."""
     patches = patches_with_room(patches, plain_count, conf)
     pixels = view_pixel_budget(gray.shape, conf) if pixel_budget is None else pixel_budget
-    return plan_views(gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright)
+    bank = unused_budget_axes_kept(plain_count, conf)
+    args = (conf.rectify, pixels, conf.sift.upright, bank)
+    return plan_views(gray, camera, patches, shape, *args)
 
 
 def views_and_features(

@@ -11,7 +11,8 @@ budget, the work-grid cells each view covers and the first view covering each ce
   (``without_specks``);
 - ``patches_worth_rectifying``: near-frontal patches and small ones are left to plain SIFT;
 - ``with_tilt_neighbours``: views at tilts x or / ``tilt_factor`` around oblique plane
-  hypotheses' views (orientations from lines err most);
+  hypotheses' views (orientations from lines err most) and, where the pipeline asks
+  (plain SIFT left budget unused), around the depth planes' oblique views;
 - ``blind_patches``: for an image where no estimate gave a working view, orientations
   sampled as ASIFT samples tilts (rectified_colmap.pipeline.views_and_features: the second
   tier), planned apart and ``joined_views`` beside the estimates' views;
@@ -82,14 +83,16 @@ def plan_views(
     conf: RectifyConf,
     pixel_budget: float,
     upright: bool = False,
+    bank_depth: bool = False,
 ) -> ViewSet:
     """The views of an image with these plane patches on its (h, w) work grid ``shape``
     (the module docstring's steps), all of them within ``pixel_budget`` pixels
     (rectified_colmap.budget.view_pixel_budget). ``upright`` (upright SIFT, whose features
-    take the view's up): no view is turned to fit (rectify.patch_view's ``turn``)."""
+    take the view's up): no view is turned to fit (rectify.patch_view's ``turn``).
+    ``bank_depth``: the depth planes' views get tilt neighbours too."""
     patches = textured_patches(gray, patches, conf.min_texture)
     todo = patches_worth_rectifying(camera, patches, conf)
-    patches, todo = with_tilt_neighbours(camera, patches, todo, conf)
+    patches, todo = with_tilt_neighbours(camera, patches, todo, conf, bank_depth)
     rects = rectifications_within_budget(camera, patches, todo, conf, pixel_budget, not upright)
     masks = viewing_masks(camera, rects, patches, shape, conf.max_viewing_angle_deg)
     return ViewSet(patches, rects, masks, viewing_coverage(masks))
@@ -197,16 +200,26 @@ def tilt_neighbours(
 
 
 def with_tilt_neighbours(
-    camera: pycolmap.Camera, patches: list[Patch], todo: list[int], conf: RectifyConf
+    camera: pycolmap.Camera,
+    patches: list[Patch],
+    todo: list[int],
+    conf: RectifyConf,
+    bank_depth: bool = False,
 ) -> tuple[list[Patch], list[int]]:
     """``patches`` followed by the ``tilt_neighbours`` (conf.tilt_factor, conf.tilt_steps)
     of the plane hypotheses in ``todo`` (HYPOTHESIS_AXIS and REST_AXIS: planes from pairs of
-    vanishing points, rectified_colmap.vp.hypotheses, whose orientations err most) seen at
+    vanishing points, rectified_colmap.vp.hypotheses, whose orientations err most) and, with
+    ``bank_depth``, of the depth planes' patches (axis >= 0) seen at
     conf.tilt_bank_min_angle_deg or more (appended after all of ``patches``, each a patch of
-    its own), and ``todo`` with their indices added."""
+    its own, with its parent's axis), and ``todo`` with their indices added. Blind views
+    (BLIND_AXIS) never get neighbours: they sample orientations already."""
     if conf.tilt_steps <= 0 or not todo:
         return patches, todo
-    banked = [i for i in todo if patches[i].axis in (HYPOTHESIS_AXIS, REST_AXIS)]
+    banked = [
+        i
+        for i in todo
+        if patches[i].axis in (HYPOTHESIS_AXIS, REST_AXIS) or (bank_depth and patches[i].axis >= 0)
+    ]
     angle = viewing_angles(camera, [patches[i] for i in banked])
     patches, todo = list(patches), list(todo)
     for i, a in zip(banked, angle):

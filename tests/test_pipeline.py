@@ -361,6 +361,31 @@ def test_planes_the_lines_do_not_confirm_share_their_pixels_and_room_with_blind_
     np.testing.assert_array_equal(a.features.descriptors, b.features.descriptors)
 
 
+def test_depth_planes_views_get_tilt_neighbours_only_where_plain_sift_left_budget_unused(
+    texture,
+):
+    """pipeline.image_views: a depth plane's view seen at 60 degrees gets its two tilt
+    neighbours (t x or / sqrt 2, its axis) where plain SIFT's keypoints left part of its
+    budget unused, none where they fill it, and none with rectify.tilt_steps 0."""
+    R, t = look_at([0.0, -5, 3.0], [0, 0, 0])
+    img, _ = plane_view(texture, 0.01, K, R, t, SIZE)
+    shape = (45, 60)
+    v = np.array([0.0, 0.0, 1.0])  # the ray through the image centre
+    normal = np.array([-np.sin(np.pi / 3), 0.0, -np.cos(np.pi / 3)])  # 60 degrees from it
+    patch = Patch(np.ones(shape, bool), 0, normal, 1.0)
+    conf = ExtractConf()
+    budget = conf.sift.max_num_features
+    room = pipeline.image_views(img, CAMERA, [patch], shape, budget // 2, conf)
+    assert [p.axis for p in room.patches] == [0, 0, 0] and len(room.rects) == 3
+    tilts = sorted(1.0 / -(p.normal @ v) for p in room.patches)
+    np.testing.assert_allclose(tilts, [2 / np.sqrt(2), 2.0, 2 * np.sqrt(2)], rtol=0.05)
+    full = pipeline.image_views(img, CAMERA, [patch], shape, budget, conf)
+    assert len(full.patches) == 1 and len(full.rects) == 1
+    off = ExtractConf.from_dict({"rectify": {"tilt_steps": 0}})
+    alone = pipeline.image_views(img, CAMERA, [patch], shape, budget // 2, off)
+    assert len(alone.patches) == 1 and len(alone.rects) == 1
+
+
 def test_lines_support_is_a_hypothesis_or_a_normal_the_lines_changed():
     """pipeline.lines_support: True where the lines added a plane hypothesis or turned a
     depth patch's normal; False where they left every patch as the depth gave it."""

@@ -9,7 +9,7 @@ from rectified_colmap import sift as sift_module
 from rectified_colmap.budget import OPENCV_VIEW_PIXELS_RATIO, view_pixel_budget
 from rectified_colmap.camera import make_camera, rays_to_image
 from rectified_colmap.config import VIEW_RESOLUTIONS, RectifyConf
-from rectified_colmap.planes import HYPOTHESIS_AXIS, Patch
+from rectified_colmap.planes import BLIND_AXIS, HYPOTHESIS_AXIS, Patch
 from rectified_colmap.rectify import (
     Rectification,
     image_to_rectified_homography,
@@ -612,8 +612,9 @@ def test_tilt_neighbours_scale_the_tilt_exactly(name):
 def test_only_oblique_plane_hypotheses_get_tilt_neighbours():
     """Only patches of HYPOTHESIS_AXIS (plane hypotheses from pairs of vanishing points,
     whose orientations err most) seen at tilt_bank_min_angle_deg or more get tilt
-    neighbours; a depth patch and a frontal hypothesis do not. Neighbours are appended with
-    their indices."""
+    neighbours; a depth patch and a frontal hypothesis do not, unless ``bank_depth``, when
+    the oblique depth patch gets them too (with its axis), and a blind view never does.
+    Neighbours are appended with their indices."""
     from rectified_colmap.views import with_tilt_neighbours
 
     cam = camera("PINHOLE")
@@ -629,6 +630,14 @@ def test_only_oblique_plane_hypotheses_get_tilt_neighbours():
     assert all(p.axis == HYPOTHESIS_AXIS and p.mask is hyp_patch.mask for p in out[3:])
     out, todo = with_tilt_neighbours(cam, patches, [0, 2], RectifyConf(tilt_steps=1))
     assert out == patches and todo == [0, 2]  # not in todo: no neighbours
+    # bank_depth (where plain SIFT left budget unused): the depth patch gets them too
+    out, todo = with_tilt_neighbours(cam, patches, [0, 1, 2], RectifyConf(tilt_steps=1), True)
+    assert out[:3] == patches and todo == list(range(len(out))) and len(out) == 7
+    assert [p.axis for p in out[3:]] == [0, 0, HYPOTHESIS_AXIS, HYPOTHESIS_AXIS]
+    assert all(p.mask is depth_patch.mask for p in out[3:])
+    blind = Patch(depth_patch.mask, BLIND_AXIS, oblique, 1.0)
+    out, _ = with_tilt_neighbours(cam, [blind], [0], RectifyConf(tilt_steps=1), True)
+    assert out == [blind]  # blind views sample orientations already
 
 
 def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():

@@ -8,8 +8,8 @@ as eval_homography.py's ``rectsift`` does (extreme_pairs.guessed_camera: f = 1.2
 longer side, the embedded network, ``--conf``). Each feature gets the kind of the view it came
 from (``view_kinds``): ``plain`` (plain SIFT on the image), ``depth`` (a plane of the
 depth network), ``hyp`` / ``rest`` (a plane hypothesis of the vanishing points, over the
-whole image / over the rest of a plane), ``hyp-nbr`` / ``rest-nbr`` (their tilt
-neighbours), ``blind`` (ASIFT-like views without an estimate). Both directions of every
+whole image / over the rest of a plane), ``depth-nbr`` / ``hyp-nbr`` / ``rest-nbr``
+(their tilt neighbours), ``blind`` (ASIFT-like views without an estimate). Both directions of every
 pair are matched as eval_homography.py matches them (ratio test, mutual), and each case is
 classed by whether plain SIFT's features alone (the output's plain part, exactly plain
 SIFT) and all features solve it. The output (markdown): cases per class; the views'
@@ -39,25 +39,22 @@ from rectified_colmap.planes import BLIND_AXIS, HYPOTHESIS_AXIS, Patch
 from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
 
 logger = logging.getLogger("view_yield")
-KINDS = ("plain", "depth", "hyp", "hyp-nbr", "rest", "rest-nbr", "blind")
+KINDS = ("plain", "depth", "depth-nbr", "hyp", "hyp-nbr", "rest", "rest-nbr", "blind")
 
 
 def view_kinds(patches: list[Patch]) -> list[str]:
-    """The kind of each patch's view (see the module docstring): a hypothesis or rest patch
-    with the axis and the very mask array of an earlier one is a tilt neighbour
+    """The kind of each patch's view (see the module docstring): a depth, hypothesis or
+    rest patch with the axis and the very mask array of an earlier one is a tilt neighbour
     (views.tilt_neighbours gives each its parent's mask object; two hypotheses over the
     same cells have equal masks, not the same one)."""
     out = []
     for i, p in enumerate(patches):
-        if p.axis >= 0:
-            out.append("depth")
-        elif p.axis == BLIND_AXIS:
+        if p.axis == BLIND_AXIS:
             out.append("blind")
-        else:
-            kind = "hyp" if p.axis == HYPOTHESIS_AXIS else "rest"
-            earlier = patches[:i]
-            nbr = any(q.axis == p.axis and q.mask is p.mask for q in earlier)
-            out.append(kind + "-nbr" if nbr else kind)
+            continue
+        kind = "depth" if p.axis >= 0 else "hyp" if p.axis == HYPOTHESIS_AXIS else "rest"
+        nbr = any(q.axis == p.axis and q.mask is p.mask for q in patches[:i])
+        out.append(kind + "-nbr" if nbr else kind)
     return out
 
 

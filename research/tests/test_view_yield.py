@@ -22,6 +22,8 @@ def test_view_kinds_tell_tilt_neighbours_by_their_parents_axis_and_mask_object()
         Patch(c, REST_AXIS, n, 0.5),
         Patch(c, REST_AXIS, n, 0.5),  # a rest neighbour
         Patch(b, BLIND_AXIS, n, 1.0),
+        Patch(a, 0, n, 0.5),  # the depth patch's neighbour (where plain SIFT left room)
+        Patch(a.copy(), 1, n, 0.5),  # another depth plane over the same cells
     ]
     assert vy.view_kinds(patches) == [
         "depth",
@@ -32,6 +34,8 @@ def test_view_kinds_tell_tilt_neighbours_by_their_parents_axis_and_mask_object()
         "rest",
         "rest-nbr",
         "blind",
+        "depth-nbr",
+        "depth",
     ]
 
 
