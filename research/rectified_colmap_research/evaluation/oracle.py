@@ -49,9 +49,9 @@ def plane_normals_from_homography(
     frames) and intrinsics K0, K1 (COLMAP convention), e.g. guessed ones.
 
     K1^-1 H K0 = R + t n^T / d is decomposed (cv2.decomposeHomographyMat, up to 4
-    solutions); kept are those with every point of ``x0`` (image-0 pixels on the plane,
-    (N, 2)) in front of both cameras, and among them the one whose plane best reproduces
-    H (all exact solutions do; with guessed intrinsics none is exact). Returns (n0, n1)."""
+    solutions); kept is the one with the largest share of ``x0`` (image-0 pixels on the
+    plane, (N, 2)) in front of both cameras (the first of a tie). Returns (n0, n1);
+    ValueError when ``x0`` is empty."""
     Hn = np.linalg.inv(K1) @ H @ K0
     Hn /= np.cbrt(np.linalg.det(Hn))  # scale of H is arbitrary (det > 0 kept)
     _, Rs, ts, ns = cv2.decomposeHomographyMat(Hn, np.eye(3))
