@@ -268,8 +268,9 @@ def image_views(
     patches = patches_with_room(patches, plain_count, conf)
     pixels = view_pixel_budget(gray.shape, conf) if pixel_budget is None else pixel_budget
     bank = unused_budget_axes_kept(plain_count, conf)
-    args = (conf.rectify, pixels, conf.sift.upright, bank)
-    return plan_views(gray, camera, patches, shape, *args)
+    return plan_views(
+        gray, camera, patches, shape, conf.rectify, pixels, conf.sift.upright, bank_depth=bank
+    )
 
 
 def views_and_features(
