@@ -35,27 +35,11 @@ from rectified_colmap.io.images import read_image
 from rectified_colmap.eval.config import HomographyConf
 from rectified_colmap.eval.homography import evaluate_pair, match_gt_errors
 from rectified_colmap.pipeline import ImageResult, extract_image
-from rectified_colmap.planes import BLIND_AXIS, HYPOTHESIS_AXIS, Patch
+from rectified_colmap_research.evaluation.coverage import view_kinds
 from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
 
 logger = logging.getLogger("view_yield")
 KINDS = ("plain", "depth", "depth-nbr", "hyp", "hyp-nbr", "rest", "rest-nbr", "blind")
-
-
-def view_kinds(patches: list[Patch]) -> list[str]:
-    """The kind of each patch's view (see the module docstring): a depth, hypothesis or
-    rest patch with the axis and the very mask array of an earlier one is a tilt neighbour
-    (views.tilt_neighbours gives each its parent's mask object; two hypotheses over the
-    same cells have equal masks, not the same one)."""
-    out = []
-    for i, p in enumerate(patches):
-        if p.axis == BLIND_AXIS:
-            out.append("blind")
-            continue
-        kind = "depth" if p.axis >= 0 else "hyp" if p.axis == HYPOTHESIS_AXIS else "rest"
-        nbr = any(q.axis == p.axis and q.mask is p.mask for q in patches[:i])
-        out.append(kind + "-nbr" if nbr else kind)
-    return out
 
 
 def feature_kinds(res: ImageResult) -> tuple[np.ndarray, Counter]:

@@ -1,0 +1,219 @@
+#!/usr/bin/env python
+"""Do the views reach the plane? The residual transition tilt of planar pairs, per pair,
+for the default's views beside ASIFT's and plain SIFT's (issue 41, item 3: "the true
+orientation always within the tilt tolerance of SIFT on some view").
+
+For the pairs of ``--data`` (pairs.json and images/, e.g. build_extreme_pairs.py's generated
+pairs, ``--split`` for one half), each image is extracted as eval_homography.py's
+``rectsift`` does (extreme_pairs.guessed_camera, the embedded network, ``--conf``). On a grid
+of the overlap (image-0 points that image 1 sees on the plane), every point gets its
+residual tilt (rectified_colmap_research.evaluation.coverage.residual_tilts): the smallest
+transition tilt between a view of image 0 and a view of image 1 that both contain it. The
+views: the image itself and the default's rectified views (``default``), OpenCV's ASIFT
+views (``asift``: whole-image affine tilts, no mask), the images alone (``plain``: the
+pair's own transition tilt). A pair is *covered* where the median point's residual tilt is
+at most coverage.SIFT_TILT_TOLERANCE (2).
+
+With ``--records`` (eval_homography.py's records.csv, repeatable), each method there adds
+whether it solved the pair (either direction), and the report crosses covered with solved:
+a pair the default loses although its views cover the plane lost its matches after the
+orientation (resolution, budget, detector, matching); one they do not cover lost it before.
+
+Writes coverage.csv (one row per pair) and coverage.md.
+
+    python research/scripts/view_coverage.py --data OUT/seed3 --output_dir OUT/cov_s3 \\
+        --records OUT/ev_s3/records.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import pickle
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs
+from rectified_colmap.errors import run_script
+from rectified_colmap.eval.config import HomographyConf
+from rectified_colmap.eval.homography import apply_homography, points_in_region, visible_grid
+from rectified_colmap.io.images import read_image
+from rectified_colmap.pipeline import extract_image
+from rectified_colmap.rectify import image_to_rectified_homography
+from rectified_colmap_research.evaluation.coverage import (
+    SIFT_TILT_TOLERANCE,
+    View,
+    asift_views,
+    coverage,
+    plain_view,
+    covered_scales,
+    residual_tilts,
+    view_kinds,
+)
+from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
+
+logger = logging.getLogger("view_coverage")
+CLASSES = ("tilt_bin", "scale_bin", "rotation", "both_oblique", "portrait")
+VIEW_SETS = ("plain", "default", "asift")
+
+
+def default_views(res, camera) -> list[View]:
+    """The image itself and each rectified view of ``res`` (pipeline.ImageResult), its
+    kind from coverage.view_kinds."""
+    kinds = view_kinds(res.planes.patches) if res.planes is not None else []
+    out = [plain_view()]
+    for r in res.rectifications:
+        H = image_to_rectified_homography(camera, r)
+        out.append(View(H, tuple(r.size), r.mask, kinds[r.patch_index]))
+    return out
+
+
+def overlap_points(pair, step: float) -> np.ndarray:
+    """(N, 2) image-0 grid points (``step`` px) on the plane that image 1 sees: in both
+    regions where the pair has them."""
+    xy = visible_grid(pair, step)
+    if pair.region1 is not None and len(xy):
+        xy = xy[points_in_region(apply_homography(pair.H, xy), pair.region1)]
+    return xy
+
+
+def solved_pairs(paths: list[Path]) -> dict[str, set[str]]:
+    """method -> names of the pairs it solved in either direction, from records.csv files."""
+    out: dict[str, set[str]] = {}
+    for path in paths:
+        with open(path, newline="") as f:
+            for row in csv.DictReader(f):
+                out.setdefault(row["method"], set())
+                if row["success"] == "True":
+                    out[row["method"]].add(row["pair"])
+    return out
+
+
+def pair_row(pair, views: dict[str, tuple[list[View], list[View]]], step: float) -> dict:
+    """One pair's residual tilts under each view set (median over the overlap, coverage),
+    the scale change at which its views reach the plane (coverage.covered_scales, median
+    over the overlap), and the kinds of the default's views that reach it most often."""
+    xy = overlap_points(pair, step)
+    row = {"pair": pair.name, "split": pair.info.get("split", ""), "points": len(xy)}
+    row.update({c: pair.info.get(c, "") for c in CLASSES})
+    for name, (v0, v1) in views.items():
+        tilts, which = residual_tilts(pair.H, xy, v0, v1)
+        row[f"{name}_tilt"] = float(np.median(tilts)) if len(xy) else float("nan")
+        row[f"{name}_coverage"] = coverage(tilts)
+        if name == "plain":
+            continue
+        scale = covered_scales(pair.H, xy, v0, v1)
+        row[f"{name}_scale"] = float(np.median(scale)) if len(xy) else float("nan")
+        ok = tilts <= SIFT_TILT_TOLERANCE
+        if name == "default":
+            kinds = Counter(f"{v0[a].kind}+{v1[b].kind}" for a, b in which[ok])
+            row["default_views"] = f"{len(v0) - 1}+{len(v1) - 1}"
+            row["default_best"] = kinds.most_common(1)[0][0] if kinds else ""
+    return row
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", type=Path, required=True, help="folder with pairs.json, images/")
+    p.add_argument("--split", help="the half (choose / check) of a generated pair file")
+    p.add_argument("--conf", default="rectsift", choices=sorted(confs))
+    p.add_argument("--output_dir", type=Path, required=True)
+    p.add_argument("--records", type=Path, action="append", default=[], help="records.csv")
+    p.add_argument("--grid_step", type=float, default=2 * HomographyConf().grid_step)
+    p.add_argument("--max_pairs", type=int)
+    p.add_argument(
+        "--cache", type=Path, help="folder of each image's views (pickled): reused if there"
+    )
+    args = p.parse_args(argv)
+    from rectified_colmap.depth.registry import load_depth_source
+
+    pairs = read_half(args.data, args.split, args.max_pairs)
+    conf = ExtractConf.from_dict(confs[args.conf])
+    source = load_depth_source(DEFAULT_DEPTH_MODEL, num_threads=1)
+    solved = solved_pairs(args.records)
+    asift = asift_views()
+
+    def views(name: str) -> list[View]:
+        cached = args.cache / f"{args.conf}" / f"{name}.pkl" if args.cache else None
+        if cached is not None and cached.exists():
+            return pickle.loads(cached.read_bytes())
+        rgb = read_image(args.data / name)
+        cam = guessed_camera(rgb.shape[1], rgb.shape[0])
+        res = extract_image(rgb, cam, source(rgb, cam, name), conf, np.random.default_rng(0))
+        out = default_views(res, cam)
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            cached.write_bytes(pickle.dumps(out))
+        return out
+
+    rows = []
+    for i, pair in enumerate(pairs):
+        d0, d1 = views(pair.im0), views(pair.im1)
+        sets = {"plain": ([d0[0]], [d1[0]]), "default": (d0, d1), "asift": (asift, asift)}
+        row = pair_row(pair, sets, args.grid_step)
+        row.update({m: pair.name in names for m, names in solved.items()})
+        rows.append(row)
+        logger.info("%d/%d %s: %s", i + 1, len(pairs), pair.name, row)
+    args.output_dir.mkdir(parents=True, exist_ok=True)
+    with open(args.output_dir / "coverage.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (args.output_dir / "coverage.md").write_text(report(rows, sorted(solved), args))
+    logger.info("wrote %s", args.output_dir / "coverage.md")
+    return 0
+
+
+def covered(row: dict, name: str) -> bool:
+    """Whether the view set ``name`` covers the pair: its median residual tilt at most
+    coverage.SIFT_TILT_TOLERANCE."""
+    return float(row[f"{name}_tilt"]) <= SIFT_TILT_TOLERANCE
+
+
+def report(rows: list[dict], methods: list[str], args) -> str:
+    """coverage.md: pairs covered per view set, half and class; covered x solved."""
+    lines = [f"# View coverage: {args.data} {args.split or ''} ({args.conf})", ""]
+    lines += [f"A pair is covered where its median residual tilt is <= {SIFT_TILT_TOLERANCE}.", ""]
+    halves = sorted({r["split"] for r in rows})
+    lines += ["| view set | " + " | ".join(f"covered: {h or 'all'}" for h in halves)]
+    lines[-1] += " | median residual tilt |"
+    lines += ["|---" * (len(halves) + 2) + "|"]
+    for name in VIEW_SETS:
+        cells = []
+        for h in halves:
+            sub = [r for r in rows if r["split"] == h]
+            cells.append(f"{sum(covered(r, name) for r in sub)} of {len(sub)}")
+        med = np.median([r[f"{name}_tilt"] for r in rows])
+        lines += [f"| {name} | " + " | ".join(cells) + f" | {med:.2f} |"]
+    for cls in CLASSES:
+        lines += ["", f"| {cls} | pairs | " + " | ".join(f"{n} covered" for n in VIEW_SETS)]
+        lines[-1] += " |"
+        lines += ["|---" * (len(VIEW_SETS) + 2) + "|"]
+        for value in sorted({r[cls] for r in rows}):
+            sub = [r for r in rows if r[cls] == value]
+            cells = [str(sum(covered(r, n) for r in sub)) for n in VIEW_SETS]
+            lines += [f"| {value} | {len(sub)} | " + " | ".join(cells) + " |"]
+    for m in methods:
+        lines += ["", f"## {m}: solved by covered (the default's views)", ""]
+        lines += ["| | solved | lost |", "|---|---|---|"]
+        for cov in (True, False):
+            sub = [r for r in rows if covered(r, "default") == cov]
+            n = sum(r[m] for r in sub)
+            lines += [f"| {'covered' if cov else 'not covered'} | {n} | {len(sub) - n} |"]
+        lost = [r for r in rows if not r[m]]
+        if lost:
+            lines += ["", "| lost pair | half | default / asift / plain tilt | best views |"]
+            lines[-1] += " scale change, default / asift |"
+            lines += ["|---" * 5 + "|"]
+            for r in lost:
+                t = " / ".join(f"{r[f'{n}_tilt']:.2f}" for n in ("default", "asift", "plain"))
+                lines += [f"| {r['pair']} | {r['split']} | {t} | {r['default_best']} |"]
+                lines[-1] += f" {r['default_scale']:.1f} / {r['asift_scale']:.1f} |"
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_script(main, "view_coverage"))
