@@ -7,12 +7,12 @@ For the pairs of ``--data`` (pairs.json and images/, e.g. build_extreme_pairs.py
 pairs, ``--split`` for one half), each image is extracted as eval_homography.py's
 ``rectsift`` does (extreme_pairs.guessed_camera, the embedded network, ``--conf``). On a grid
 of the overlap (image-0 points that image 1 sees on the plane), every point gets its
-residual tilt (rectified_colmap_research.evaluation.coverage.residual_tilts): the smallest
-transition tilt between a view of image 0 and a view of image 1 that both contain it. The
+residual tilt (rectified_colmap_research.evaluation.view_meeting.best_view_pairs): the
+smallest transition tilt between a view of image 0 and a view of image 1 that both hold it. The
 views: the image itself and the default's rectified views (``default``), OpenCV's ASIFT
 views (``asift``: whole-image affine tilts, no mask), the images alone (``plain``: the
 pair's own transition tilt). A pair is *covered* where the median point's residual tilt is
-at most coverage.SIFT_TILT_TOLERANCE (2).
+at most TAU_MAX (2); the scale change is the one at which the views meet, nearest 1.
 
 With ``--records`` (eval_homography.py's records.csv, repeatable), each method there adds
 whether it solved the pair (either direction), and the report crosses covered with solved:
@@ -39,45 +39,34 @@ import numpy as np
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.config import HomographyConf
-from rectified_colmap.eval.homography import apply_homography, points_in_region, visible_grid
 from rectified_colmap.io.images import read_image
 from rectified_colmap.pipeline import extract_image
-from rectified_colmap.rectify import image_to_rectified_homography
-from rectified_colmap_research.evaluation.coverage import (
-    SIFT_TILT_TOLERANCE,
-    View,
-    asift_views,
-    coverage,
-    plain_view,
-    covered_scales,
-    residual_tilts,
-    view_kinds,
-)
 from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
+from rectified_colmap_research.evaluation.view_meeting import (
+    asift_view_set,
+    best_view_pairs,
+    overlap_points,
+    view_kinds,
+    view_set,
+)
 
 logger = logging.getLogger("view_coverage")
 CLASSES = ("tilt_bin", "scale_bin", "rotation", "both_oblique", "portrait")
 VIEW_SETS = ("plain", "default", "asift")
 
 
-def default_views(res, camera) -> list[View]:
-    """The image itself and each rectified view of ``res`` (pipeline.ImageResult), its
-    kind from coverage.view_kinds."""
+TAU_MAX = 2.0
+"""The transition tilt SIFT absorbs (ASIFT's analysis): a pair is covered where its median
+overlap point has two views that meet within it."""
+
+
+def default_views(res, camera) -> tuple[list, list[str]]:
+    """The view set of ``res`` (pipeline.ImageResult: the image itself and its rectified
+    views, view_meeting.view_set) and each view's kind (``plain``, view_kinds)."""
     kinds = view_kinds(res.planes.patches) if res.planes is not None else []
-    out = [plain_view()]
-    for r in res.rectifications:
-        H = image_to_rectified_homography(camera, r)
-        out.append(View(H, tuple(r.size), r.mask, kinds[r.patch_index]))
-    return out
-
-
-def overlap_points(pair, step: float) -> np.ndarray:
-    """(N, 2) image-0 grid points (``step`` px) on the plane that image 1 sees: in both
-    regions where the pair has them."""
-    xy = visible_grid(pair, step)
-    if pair.region1 is not None and len(xy):
-        xy = xy[points_in_region(apply_homography(pair.H, xy), pair.region1)]
-    return xy
+    return view_set(camera, res.rectifications), ["plain"] + [
+        kinds[r.patch_index] for r in res.rectifications
+    ]
 
 
 def solved_pairs(paths: list[Path]) -> dict[str, set[str]]:
@@ -92,24 +81,24 @@ def solved_pairs(paths: list[Path]) -> dict[str, set[str]]:
     return out
 
 
-def pair_row(pair, views: dict[str, tuple[list[View], list[View]]], step: float) -> dict:
-    """One pair's residual tilts under each view set (median over the overlap, coverage),
-    the scale change at which its views reach the plane (coverage.covered_scales, median
-    over the overlap), and the kinds of the default's views that reach it most often."""
+def pair_row(pair, sets: dict[str, tuple], step: float) -> dict:
+    """One pair's residual tilts under each view set (``sets``: name -> (views of image 0,
+    views of image 1, kinds of image 0's, kinds of image 1's)): the median over the overlap
+    grid (``step`` px) and the share within TAU_MAX; the median scale change at which the
+    views meet (view_meeting.best_view_pairs); the kinds of the two views that meet most
+    often at the smallest tilt."""
     xy = overlap_points(pair, step)
     row = {"pair": pair.name, "split": pair.info.get("split", ""), "points": len(xy)}
     row.update({c: pair.info.get(c, "") for c in CLASSES})
-    for name, (v0, v1) in views.items():
-        tilts, which = residual_tilts(pair.H, xy, v0, v1)
-        row[f"{name}_tilt"] = float(np.median(tilts)) if len(xy) else float("nan")
-        row[f"{name}_coverage"] = coverage(tilts)
-        if name == "plain":
-            continue
-        scale = covered_scales(pair.H, xy, v0, v1)
-        row[f"{name}_scale"] = float(np.median(scale)) if len(xy) else float("nan")
-        ok = tilts <= SIFT_TILT_TOLERANCE
+    for name, (v0, v1, k0, k1) in sets.items():
+        tilts, which, scale = best_view_pairs(pair, v0, v1, xy, TAU_MAX)
+        empty = float("nan")
+        row[f"{name}_tilt"] = float(np.median(tilts)) if len(xy) else empty
+        row[f"{name}_coverage"] = float(np.mean(tilts <= TAU_MAX)) if len(xy) else empty
+        row[f"{name}_scale"] = float(np.median(scale)) if len(xy) else empty
         if name == "default":
-            kinds = Counter(f"{v0[a].kind}+{v1[b].kind}" for a, b in which[ok])
+            met = which[tilts <= TAU_MAX]
+            kinds = Counter(f"{k0[a]}+{k1[b]}" for a, b in met)
             row["default_views"] = f"{len(v0) - 1}+{len(v1) - 1}"
             row["default_best"] = kinds.most_common(1)[0][0] if kinds else ""
     return row
@@ -134,9 +123,10 @@ def main(argv=None) -> int:
     conf = ExtractConf.from_dict(confs[args.conf])
     source = load_depth_source(DEFAULT_DEPTH_MODEL, num_threads=1)
     solved = solved_pairs(args.records)
-    asift = asift_views()
+    asift = asift_view_set()
+    asift_kinds = ["asift"] * len(asift)
 
-    def views(name: str) -> list[View]:
+    def views(name: str) -> tuple[list, list[str]]:
         cached = args.cache / f"{args.conf}" / f"{name}.pkl" if args.cache else None
         if cached is not None and cached.exists():
             return pickle.loads(cached.read_bytes())
@@ -151,8 +141,12 @@ def main(argv=None) -> int:
 
     rows = []
     for i, pair in enumerate(pairs):
-        d0, d1 = views(pair.im0), views(pair.im1)
-        sets = {"plain": ([d0[0]], [d1[0]]), "default": (d0, d1), "asift": (asift, asift)}
+        (v0, k0), (v1, k1) = views(pair.im0), views(pair.im1)
+        sets = {
+            "plain": (v0[:1], v1[:1], k0, k1),
+            "default": (v0, v1, k0, k1),
+            "asift": (asift, asift, asift_kinds, asift_kinds),
+        }
         row = pair_row(pair, sets, args.grid_step)
         row.update({m: pair.name in names for m, names in solved.items()})
         rows.append(row)
@@ -169,14 +163,14 @@ def main(argv=None) -> int:
 
 def covered(row: dict, name: str) -> bool:
     """Whether the view set ``name`` covers the pair: its median residual tilt at most
-    coverage.SIFT_TILT_TOLERANCE."""
-    return float(row[f"{name}_tilt"]) <= SIFT_TILT_TOLERANCE
+    TAU_MAX."""
+    return float(row[f"{name}_tilt"]) <= TAU_MAX
 
 
 def report(rows: list[dict], methods: list[str], args) -> str:
     """coverage.md: pairs covered per view set, half and class; covered x solved."""
     lines = [f"# View coverage: {args.data} {args.split or ''} ({args.conf})", ""]
-    lines += [f"A pair is covered where its median residual tilt is <= {SIFT_TILT_TOLERANCE}.", ""]
+    lines += [f"A pair is covered where its median residual tilt is <= {TAU_MAX}.", ""]
     halves = sorted({r["split"] for r in rows})
     lines += ["| view set | " + " | ".join(f"covered: {h or 'all'}" for h in halves)]
     lines[-1] += " | median residual tilt |"

@@ -35,7 +35,7 @@ from rectified_colmap.io.images import read_image
 from rectified_colmap.eval.config import HomographyConf
 from rectified_colmap.eval.homography import evaluate_pair, match_gt_errors
 from rectified_colmap.pipeline import ImageResult, extract_image
-from rectified_colmap_research.evaluation.coverage import view_kinds
+from rectified_colmap_research.evaluation.view_meeting import view_kinds
 from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
 
 logger = logging.getLogger("view_yield")

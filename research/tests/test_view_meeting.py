@@ -1,11 +1,13 @@
 """rectified_colmap_research.evaluation.view_meeting: where two view sets meet, exactly."""
 
 import numpy as np
+import pytest
 from rectified_colmap_research.evaluation.extreme_pairs import ViewParams, build_view
 from rectified_colmap_research.evaluation.plane_pairs import transition_tilt
 from rectified_colmap_research.evaluation.view_meeting import (
     asift_view_set,
     best_transition_tilt,
+    best_view_pairs,
     met_fraction,
     overlap_points,
     view_set,
@@ -97,3 +99,29 @@ def test_asift_view_set_follows_opencv_sampling():
     v0, v1 = exact_view(3.0, 20.0), exact_view(1.0, 0.0)
     pair = pair_of(v0, v1)
     assert met_fraction(pair, views, [(np.eye(3), None)]) > 0.9
+
+
+def test_best_view_pairs_name_the_views_and_the_scale_at_which_they_meet():
+    """An affine pair with tilt 3 (a 640 x 480 image 0, image 1 three times as wide): the
+    images alone meet nowhere; a view of image 1 that undoes the tilt at a quarter of the
+    scale meets everywhere at a scale change of 4, and one that undoes it at half the
+    scale is the one nearest 1; a quarter turn, at the same scale, leaves the tilt."""
+    stretch = np.diag([3.0, 1.0, 1.0])
+    pair = HomographyPair("p", "a", "b", stretch, SIZE, (1920, 480))
+    xy = overlap_points(pair)
+    plain = [(np.eye(3), None)]
+    tau, which, scale = best_view_pairs(pair, plain, plain, xy)
+    assert tau == pytest.approx(np.full(len(xy), 3.0)) and np.isinf(scale).all()
+    assert (which == 0).all()
+    quarter = (np.diag([1 / 12.0, 1 / 4.0, 1.0]), None)
+    half = (np.diag([1 / 6.0, 1 / 2.0, 1.0]), None)
+    turn = (np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), None)
+    tau, which, scale = best_view_pairs(pair, plain, [turn, quarter], xy)
+    assert tau == pytest.approx(np.ones(len(xy))) and scale == pytest.approx(np.full(len(xy), 4.0))
+    assert (which[:, 1] == 1).all()
+    tau, which, scale = best_view_pairs(pair, plain, [turn, quarter, half], xy)
+    assert scale == pytest.approx(np.full(len(xy), 2.0))
+    # a view whose mask holds nothing: no pair of views, no scale
+    nothing = (np.eye(3), np.zeros((4, 4), bool))
+    tau, which, scale = best_view_pairs(pair, [nothing], [nothing], xy)
+    assert np.isinf(tau).all() and (which == -1).all() and np.isinf(scale).all()

@@ -24,6 +24,7 @@ import pycolmap
 
 from rectified_colmap.features import keypoints_in_mask
 from rectified_colmap.eval.homography import HomographyPair, apply_homography, points_in_region
+from rectified_colmap.planes import BLIND_AXIS, HYPOTHESIS_AXIS, Patch
 from rectified_colmap.rectify import Rectification, image_to_rectified_homography
 from rectified_colmap_research.evaluation.plane_pairs import homography_jacobian
 
@@ -34,6 +35,25 @@ def view_set(camera: pycolmap.Camera, rects: list[Rectification]) -> list[View]:
     """The image itself (identity, no mask) and each rectification's (H image -> view,
     mask)."""
     return [(np.eye(3), None)] + [(image_to_rectified_homography(camera, r), r.mask) for r in rects]
+
+
+def view_kinds(patches: list[Patch]) -> list[str]:
+    """The kind of each patch's view: ``depth`` (a plane of the depth network), ``hyp`` /
+    ``rest`` (a plane hypothesis of the vanishing points, over the whole image / over the
+    rest of a plane), ``blind`` (ASIFT-like views without an estimate), and ``-nbr`` for
+    their tilt neighbours: a depth, hypothesis or
+    rest patch with the axis and the very mask array of an earlier one is a tilt neighbour
+    (views.tilt_neighbours gives each its parent's mask object; two hypotheses over the
+    same cells have equal masks, not the same one)."""
+    out = []
+    for i, p in enumerate(patches):
+        if p.axis == BLIND_AXIS:
+            out.append("blind")
+            continue
+        kind = "depth" if p.axis >= 0 else "hyp" if p.axis == HYPOTHESIS_AXIS else "rest"
+        nbr = any(q.axis == p.axis and q.mask is p.mask for q in patches[:i])
+        out.append(kind + "-nbr" if nbr else kind)
+    return out
 
 
 def asift_view_set(num_tilts: int = 5, longitude_step_deg: float = 72.0) -> list[View]:
@@ -81,31 +101,53 @@ def best_transition_tilt(
 ) -> np.ndarray:
     """(N,) the smallest transition tilt over all (view of image 0, view of image 1) that
     both hold the image-0 point (N, 2) (and its image under H); inf where no pair does."""
-    best = np.full(len(xy0), np.inf)
-    if len(xy0) == 0:
-        return best
+    return best_view_pairs(pair, views0, views1, xy0)[0]
+
+
+def best_view_pairs(
+    pair: HomographyPair,
+    views0: list[View],
+    views1: list[View],
+    xy0: np.ndarray,
+    tau_max: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per image-0 point (N, 2): ((N,) the smallest transition tilt over the pairs of views
+    that both hold it, inf where none does; (N, 2) int, the indices of that pair of views,
+    -1 where none; (N,) the scale change max(s, 1 / s), s = sqrt |det|, of the map between
+    the two views nearest 1 among the pairs that meet there (tilt at most ``tau_max``), inf
+    where none does). SIFT meets a scale change only where both views hold the texture at
+    the matching octaves: views that meet only 10-30x apart in scale meet in name."""
+    n = len(xy0)
+    best, which, scale = np.full(n, np.inf), np.full((n, 2), -1), np.full(n, np.inf)
+    if n == 0:
+        return best, which, scale
     xy1 = apply_homography(pair.H, xy0)
     JH = homography_jacobian(pair.H, xy0)
     side1 = []
     for Hb, mb in views1:
         held = in_mask(mb, apply_homography(Hb, xy1))
         side1.append((held, homography_jacobian(Hb, xy1)))
-    for Ha, ma in views0:
+    for a, (Ha, ma) in enumerate(views0):
         held0 = in_mask(ma, apply_homography(Ha, xy0))
         if not held0.any():
             continue
         inv_a = np.linalg.inv(homography_jacobian(Ha, xy0)[held0])
-        for held1, Jb in side1:
+        for b, (held1, Jb) in enumerate(side1):
             both = held1[held0]
             if not both.any():
                 continue
             M = Jb[held0][both] @ JH[held0][both] @ inv_a[both]
             s = np.linalg.svd(M, compute_uv=False)
             with np.errstate(invalid="ignore", divide="ignore"):
-                tau = np.where(s[:, 1] > 0, s[:, 0] / s[:, 1], np.inf)
+                tau = np.nan_to_num(np.where(s[:, 1] > 0, s[:, 0] / s[:, 1], np.inf), nan=np.inf)
+                change = np.sqrt(s[:, 0] * s[:, 1])
+                change = np.nan_to_num(np.maximum(change, 1.0 / change), nan=np.inf)
             idx = np.flatnonzero(held0)[both]
-            best[idx] = np.minimum(best[idx], np.nan_to_num(tau, nan=np.inf))
-    return best
+            better = tau < best[idx]
+            best[idx[better]], which[idx[better]] = tau[better], (a, b)
+            meet = tau <= tau_max
+            scale[idx[meet]] = np.minimum(scale[idx[meet]], change[meet])
+    return best, which, scale
 
 
 def met_fraction(
