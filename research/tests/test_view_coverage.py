@@ -35,4 +35,6 @@ def test_rows_and_report_tell_covered_from_solved(tmp_path):
     records.write_text("pair,method,direction,success\np,m,0->1,False\np,m,1->0,False\n")
     row.update({m: "p" in names for m, names in vc.solved_pairs([records]).items()})
     md = vc.report([row], ["m"], SimpleNamespace(data=tmp_path, split=None, conf="rectsift"))
-    assert "| covered | 0 | 1 |" in md and "| p | check |" in md
+    assert "| met | 0 | 1 |" in md and "| not covered | 0 | 0 |" in md and "| p | check |" in md
+    assert vc.meeting(row, "plain") == "not covered" and vc.meeting(row, "default") == "met"
+    assert vc.meeting({**row, "default_scale": 5.0}, "default") == "beyond 4x"
