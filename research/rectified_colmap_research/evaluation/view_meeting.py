@@ -41,10 +41,9 @@ def view_kinds(patches: list[Patch]) -> list[str]:
     """The kind of each patch's view: ``depth`` (a plane of the depth network), ``hyp`` /
     ``rest`` (a plane hypothesis of the vanishing points, over the whole image / over the
     rest of a plane), ``blind`` (ASIFT-like views without an estimate), and ``-nbr`` for
-    their tilt neighbours: a depth, hypothesis or
-    rest patch with the axis and the very mask array of an earlier one is a tilt neighbour
-    (views.tilt_neighbours gives each its parent's mask object; two hypotheses over the
-    same cells have equal masks, not the same one)."""
+    their tilt neighbours: a depth, hypothesis or rest patch with the axis and the very
+    mask array of an earlier one (views.tilt_neighbours gives each its parent's mask
+    object; two hypotheses over the same cells have equal masks, not the same one)."""
     out = []
     for i, p in enumerate(patches):
         if p.axis == BLIND_AXIS:
