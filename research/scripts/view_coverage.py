@@ -41,9 +41,7 @@ import numpy as np
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs
 from rectified_colmap.errors import run_script
 from rectified_colmap.eval.config import HomographyConf
-from rectified_colmap.io.images import read_image
-from rectified_colmap.pipeline import extract_image
-from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
+from rectified_colmap_research.evaluation.extreme_pairs import extract_guessed, read_half
 from rectified_colmap_research.evaluation.view_meeting import (
     asift_view_set,
     best_view_pairs,
@@ -118,7 +116,10 @@ def main(argv=None) -> int:
     p.add_argument("--grid_step", type=float, default=2 * HomographyConf().grid_step)
     p.add_argument("--max_pairs", type=int)
     p.add_argument(
-        "--cache", type=Path, help="folder of each image's views (pickled): reused if there"
+        "--cache",
+        type=Path,
+        help="folder of each image's views (pickled): reused if there (clear it when the "
+        "code or the data change)",
     )
     args = p.parse_args(argv)
     from rectified_colmap.depth.registry import load_depth_source
@@ -134,10 +135,7 @@ def main(argv=None) -> int:
         cached = args.cache / args.conf / f"{name}.pkl" if args.cache else None
         if cached is not None and cached.exists():
             return pickle.loads(cached.read_bytes())
-        rgb = read_image(args.data / name)
-        cam = guessed_camera(rgb.shape[1], rgb.shape[0])
-        res = extract_image(rgb, cam, source(rgb, cam, name), conf, np.random.default_rng(0))
-        out = default_views(res, cam)
+        out = default_views(*extract_guessed(args.data, name, source, conf))
         if cached is not None:
             cached.parent.mkdir(parents=True, exist_ok=True)
             cached.write_bytes(pickle.dumps(out))

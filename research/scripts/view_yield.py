@@ -31,12 +31,11 @@ import numpy as np
 
 from rectified_colmap.config import DEFAULT_DEPTH_MODEL, ExtractConf, confs
 from rectified_colmap.errors import run_script
-from rectified_colmap.io.images import read_image
 from rectified_colmap.eval.config import HomographyConf
 from rectified_colmap.eval.homography import evaluate_pair, match_gt_errors
-from rectified_colmap.pipeline import ImageResult, extract_image
+from rectified_colmap.pipeline import ImageResult
 from rectified_colmap_research.evaluation.view_meeting import view_kinds
-from rectified_colmap_research.evaluation.extreme_pairs import guessed_camera, read_half
+from rectified_colmap_research.evaluation.extreme_pairs import extract_guessed, read_half
 
 logger = logging.getLogger("view_yield")
 KINDS = ("plain", "depth", "depth-nbr", "hyp", "hyp-nbr", "rest", "rest-nbr", "blind")
@@ -80,14 +79,11 @@ def main(argv=None) -> int:
 
     def features(name: str):
         if name not in images:
-            rgb = read_image(args.data / name)
-            h, w = rgb.shape[:2]
-            cam = guessed_camera(w, h)
-            res = extract_image(rgb, cam, source(rgb, cam, name), conf, np.random.default_rng(0))
+            res, cam = extract_guessed(args.data, name, source, conf)
             f, plain = res.features, res.features.patch < 0
             every = {"keypoints": f.keypoints, "descriptors": f.descriptors}
             only = {"keypoints": f.keypoints[plain], "descriptors": f.descriptors[plain]}
-            images[name] = (every, only, *feature_kinds(res), w * h)
+            images[name] = (every, only, *feature_kinds(res), cam.width * cam.height)
             logger.info("%s: %d features", name, len(f))
         return images[name]
 

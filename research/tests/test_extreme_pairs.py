@@ -393,3 +393,25 @@ def test_kept_pairs_obey_the_rule_and_draws_are_deterministic():
         assert rejection(again, conf) is None
     c = draw_pair(np.random.default_rng(8), TEX, conf, True)
     assert not np.allclose(c.H, a[0].H)
+
+
+def test_extract_guessed_is_rectsift_with_the_guessed_camera(tmp_path):
+    """extract_guessed: the image read from disk, f = 1.2 x its longer side, the depth
+    source's depth, seed 0: the features of that composition, call for call."""
+    from rectified_colmap.config import ExtractConf
+    from rectified_colmap.depth.registry import load_depth_source
+    from rectified_colmap.io.images import read_image
+    from rectified_colmap.pipeline import extract_image
+    from rectified_colmap_research.evaluation.extreme_pairs import extract_guessed, guessed_camera
+    from rectified_colmap_research.synth.planar import textured_image
+
+    cv2.imwrite(str(tmp_path / "a.png"), textured_image(240, 320, seed=3))
+    source, conf = load_depth_source("rectsift-lite0", num_threads=1), ExtractConf()
+    res, cam = extract_guessed(tmp_path, "a.png", source, conf)
+    assert (cam.width, cam.height) == (320, 240) and cam.params[0] == pytest.approx(384.0)
+    rgb = read_image(tmp_path / "a.png")
+    ref = extract_image(
+        rgb, guessed_camera(320, 240), source(rgb, cam, "a.png"), conf, np.random.default_rng(0)
+    )
+    np.testing.assert_array_equal(res.features.keypoints, ref.features.keypoints)
+    np.testing.assert_array_equal(res.features.descriptors, ref.features.descriptors)

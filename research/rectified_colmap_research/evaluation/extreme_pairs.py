@@ -108,6 +108,19 @@ def guessed_camera(width: int, height: int, focal_factor: float = GUESSED_FOCAL_
     return pinhole_camera(focal_factor * max(width, height), (width, height))
 
 
+def extract_guessed(root: Path, name: str, source, conf):
+    """Image ``name`` under ``root`` extracted as eval_homography.py's ``rectsift`` extracts
+    it: the ``guessed_camera``, depth from ``source`` (a depth source of
+    rectified_colmap.depth.registry), ``conf`` (ExtractConf), random generator seed 0.
+    Returns (pipeline.ImageResult, the camera)."""
+    from rectified_colmap.io.images import read_image
+    from rectified_colmap.pipeline import extract_image
+
+    rgb = read_image(Path(root) / name)
+    cam = guessed_camera(rgb.shape[1], rgb.shape[0])
+    return extract_image(rgb, cam, source(rgb, cam, name), conf, np.random.default_rng(0)), cam
+
+
 def plane_homography(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(3, 3) G: texture (world plane z = 0, COLMAP texture pixels) -> view pixels,
     K [r1 r2 t]. Its third output coordinate is the point's camera depth z_c (> 0 in
