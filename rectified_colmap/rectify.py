@@ -1,6 +1,7 @@
 """One plane patch -> a virtual fronto-parallel camera, its rectified image, and the map back.
 
-Which patches of an image get views, and within what budget, is rectified_colmap.views.
+Which patches of an image get views, within what budget, and the blind patches' affine
+views (ASIFT's tilt simulations): rectified_colmap.views.
 
 A patch with normal n (facing the camera) is seen by a virtual camera with the same centre,
 rotated by the smallest rotation R that takes the viewing direction -n onto +z. A ray X of
@@ -19,7 +20,7 @@ and the rectified image (conversions to OpenCV only through rectified_colmap.con
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -29,11 +30,11 @@ from . import camera as cam_utils
 from .config import RectifyConf, check_view_resolution
 from .conventions import OFFSET, to_opencv_homography, to_opencv_points
 from .geometry import singular_values_2x2, smallest_rotation
-from .planes import BLIND_AXIS, Patch
+from .planes import Patch
 
 logger = logging.getLogger(__name__)
 
-_MAX_FOCAL_SAMPLES = 20000
+MAX_FOCAL_SAMPLES = 20000
 """Patch pixels used (at most) for the median Jacobian that sets the virtual focal."""
 
 
@@ -74,7 +75,7 @@ def image_to_rectified_homography(camera: pycolmap.Camera, rect: Rectification) 
     return rect.K @ rect.R @ np.linalg.inv(K)
 
 
-def _rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rays (N, 3) with z = 1 -> (virtual normalised coords (N, 2), d(virtual)/d(ray xy)
     (N, 2, 2)) for the rotation R (virtual focal 1)."""
     Xv = rays @ R.T
@@ -89,7 +90,7 @@ def _rays_to_rectified_jacobian(R: np.ndarray, rays: np.ndarray) -> tuple[np.nda
     return u, J
 
 
-def _image_to_view_jacobian(camera: pycolmap.Camera, Ju: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def image_to_view_jacobian(camera: pycolmap.Camera, Ju: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """d(u)/d(image xy) (N, 2, 2) at the COLMAP pixels ``xy`` (N, 2), from ``Ju`` =
     d(u)/d(ray xy) (N, 2, 2) there: Ju @ d(ray xy)/d(image xy). A pinhole camera's is
     K^-1's 2 x 2 part, diagonal in COLMAP's models: a scaling of Ju's columns, the numbers
@@ -104,7 +105,7 @@ def _image_to_view_jacobian(camera: pycolmap.Camera, Ju: np.ndarray, xy: np.ndar
 
 def _image_to_ray_jacobian(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
     """d(ray xy)/d(image xy) (N, 2, 2) by central differences through the camera's
-    undistortion (cameras with distortion; ``_image_to_view_jacobian`` has pinholes')."""
+    undistortion (cameras with distortion; ``image_to_view_jacobian`` has pinholes')."""
     h = 1e-3
     J = np.empty((len(xy), 2, 2))
     for j in range(2):
@@ -150,17 +151,16 @@ def _rectified_mask(
     """(height, width) bool: rectified pixels whose rays are in front of the camera, within
     the viewing angle, inside the image and in the patch (nearest cell of the work grid)."""
     w, h = rect.size
-    f, cx, cy = rect.K[0, 0], rect.K[0, 2], rect.K[1, 2]
+    Ki = np.linalg.inv(rect.K)
     # Viewing angle: -ray . n = cos of the angle of the virtual ray (u, v, 1) to +z.
-    u2 = (((np.arange(w) + OFFSET - cx) / f) ** 2)[None, :]
-    v2 = (((np.arange(h) + OFFSET - cy) / f) ** 2)[:, None]
-    ok = 1.0 + u2 + v2 <= 1.0 / cos_max**2
+    x = (np.arange(w) + OFFSET)[None, :]
+    y = (np.arange(h) + OFFSET)[:, None]
+    u, v = (Ki[i, 0] * x + Ki[i, 1] * y + Ki[i, 2] for i in range(2))
+    ok = 1.0 + u**2 + v**2 <= 1.0 / cos_max**2
     gh, gw = patch_mask.shape
-    A = rect.R.T @ np.linalg.inv(rect.K)  # homogeneous rectified pixel -> original ray
+    A = rect.R.T @ Ki  # homogeneous rectified pixel -> original ray
     if cam_utils.is_pinhole(camera):
         # Nearest lookup of the work-grid mask through the homography rectified -> grid.
-        x = (np.arange(w) + OFFSET)[None, :]
-        y = (np.arange(h) + OFFSET)[:, None]
         ok &= A[2, 0] * x + A[2, 1] * y + A[2, 2] > 1e-12  # in front of the camera
         S = np.diag([gw / camera.width, gh / camera.height, 1.0])
         G = to_opencv_homography(S @ cam_utils.calibration_matrix(camera) @ A)
@@ -211,7 +211,11 @@ class PatchView:
     """Virtual focal length of the conf's view_resolution (before the caps)."""
     lo: np.ndarray
     hi: np.ndarray
-    """Extent of the patch in virtual normalised coordinates, half a cell of margin."""
+    """Extent of the patch in virtual normalised coordinates (after ``A``), half a cell of
+    margin."""
+    A: np.ndarray = field(default_factory=lambda: np.eye(2))
+    """(2, 2) map of the virtual normalised coordinates before the focal length: identity
+    for a rectification, a compression for a tilt simulation (views.tilt_simulation_view)."""
 
 
 def plan_rectification(
@@ -229,8 +233,7 @@ def plan_rectification(
     The virtual focal f makes the median smaller singular value of the image->rectified
     Jacobian over the patch 1 (nothing shrinks; or the product of both, or the larger one:
     conf.view_resolution, view_focal); the size is then capped by conf.max_patch_side,
-    scaling f down.
-    """
+    scaling f down. (A blind patch's view: views.view_of_patch.)"""
     view = patch_view(camera, patch, conf, turn)
     if view is None:
         return None
@@ -265,24 +268,21 @@ def patch_view(
     # The view's box is the box of the kept cells' hull, whose corners are among each grid
     # row's first and last kept cell: where grid rows are straight lines in the rays
     # (pinhole: the map to the view is projective, all in front) only those are needed.
-    ends = kept[_row_ends(cells[kept] // gw)]
-    u = _virtual_coords(R, grid[cells[ends]])
-    box = u if cam_utils.is_pinhole(camera) else _virtual_coords(R, grid[cells[kept]])
+    ends = kept[row_ends(cells[kept] // gw)]
+    u = virtual_coords(R, grid[cells[ends]])
+    box = u if cam_utils.is_pinhole(camera) else virtual_coords(R, grid[cells[kept]])
     if turn:  # to the smallest box
         Rz = fitting_roll(np.stack(u, 1))
         box = (Rz[0, 0] * box[0] + Rz[0, 1] * box[1], Rz[1, 0] * box[0] + Rz[1, 1] * box[1])
         R = Rz @ R
-    # Jacobians on an even subsample of at most _MAX_FOCAL_SAMPLES cells.
-    sel = np.linspace(0, len(kept) - 1, min(len(kept), _MAX_FOCAL_SAMPLES)).astype(np.int64)
+    # Jacobians on an even subsample of at most MAX_FOCAL_SAMPLES cells.
+    sel = np.linspace(0, len(kept) - 1, min(len(kept), MAX_FOCAL_SAMPLES)).astype(np.int64)
     sample = cells[kept[sel]]
     rows, cols = np.divmod(sample, gw)
     xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)  # pixel_centers
-    _, Ju = _rays_to_rectified_jacobian(R, grid[sample])
-    J = _image_to_view_jacobian(camera, Ju, xy)  # d(u)/d(image xy), f = 1
-    # a blind view (no estimate) compresses, as ASIFT's tilt simulation: its orientation
-    # may be wrong, so it gets no more pixels than the image has there
-    rule = "coarsest" if patch.axis == BLIND_AXIS else conf.view_resolution
-    f = view_focal(singular_values_2x2(J), rule)
+    _, Ju = rays_to_rectified_jacobian(R, grid[sample])
+    J = image_to_view_jacobian(camera, Ju, xy)  # d(u)/d(image xy), f = 1
+    f = view_focal(singular_values_2x2(J), conf.view_resolution)
     if f is None:
         return None
     # Margin of half a work cell around the cell centres (virtual normalised units; one
@@ -299,7 +299,7 @@ def patch_view(
     )
 
 
-def _row_ends(row: np.ndarray) -> np.ndarray:
+def row_ends(row: np.ndarray) -> np.ndarray:
     """Indices of each row's first and then each row's last entry in ``row`` (N,)
     non-decreasing (the grid rows of cells in grid order): the candidates for the corners
     of the cells' hull."""
@@ -309,7 +309,7 @@ def _row_ends(row: np.ndarray) -> np.ndarray:
     )
 
 
-def _virtual_coords(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def virtual_coords(R: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(x, y) virtual normalised coordinates of the rays (N, 3) with z = 1 under the
     rotation R, component-wise (1-D arrays are several times faster here than products)."""
     rx, ry = rays[:, 0], rays[:, 1]
@@ -375,6 +375,7 @@ def view_camera(
     size = np.maximum(size, 1)
     cx, cy = conf.border - lo * f
     K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    K[:2, :2] = f * view.A
     return K, (int(size[0]), int(size[1]))
 
 
@@ -435,14 +436,8 @@ def warp_to_rectified(
         X = _rectified_pixel_rays(rect)[rect.mask]
         xy = to_opencv_points(_project(camera, X))
         maps[rect.mask] = np.where(np.isfinite(xy), xy, -10.0)
-        out = cv2.remap(
-            image,
-            maps[..., 0],
-            maps[..., 1],
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
-        )
+        mx, my = maps[..., 0], maps[..., 1]
+        out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     # Also removes rays behind the source camera, which warpPerspective mirrors.
     out[~rect.mask] = 0
     return out

@@ -15,7 +15,9 @@ budget, the work-grid cells each view covers and the first view covering each ce
   (plain SIFT left budget unused), around the depth planes' oblique views;
 - ``blind_patches``: for an image where no estimate gave a working view, orientations
   sampled as ASIFT samples tilts (rectified_colmap.pipeline.views_and_features: the second
-  tier), planned apart and ``joined_views`` beside the estimates' views;
+  tier), planned apart and ``joined_views`` beside the estimates' views; their views are
+  ASIFT's affine tilt simulations (``tilt_simulation_view``), not rectifications
+  (``view_of_patch`` picks);
 - ``rectifications_within_budget``: every view planned, then scaled down to the image's
   pixel budget, a multiple of its own pixels: each work cell of the image buys the same
   view pixels, shared among the views over it, so no view takes another's (``shared_cells``);
@@ -35,7 +37,22 @@ from . import camera as cam_utils
 from .config import RectifyConf
 from .geometry import axis_angle_rotation
 from .planes import BLIND_AXIS, HYPOTHESIS_AXIS, REST_AXIS, Patch
-from .rectify import Rectification, finish_rectification, patch_view, view_camera
+from .conventions import OFFSET
+from .geometry import singular_values_2x2
+from .rectify import (
+    MAX_FOCAL_SAMPLES,
+    PatchView,
+    Rectification,
+    finish_rectification,
+    fitting_roll,
+    image_to_view_jacobian,
+    patch_view,
+    rays_to_rectified_jacobian,
+    row_ends,
+    view_camera,
+    view_focal,
+    virtual_coords,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -46,8 +63,8 @@ degrees at the image centre. A factor of 2 apart, so every tilt from sqrt(2) to 
 images at sqrt(2) steps: sqrt(2) between the two; here one image may be plain)."""
 BLIND_LONGITUDE_STEP_DEG = 72.0
 """Tilt directions of the blind views: ``BLIND_LONGITUDE_STEP_DEG`` / t apart, ASIFT's step
-(Morel and Yu, 2009), over all 360 degrees (through a perspective camera the two senses of
-a tilt are different views)."""
+(Morel and Yu, 2009), over 180 degrees: their views are affine (``tilt_simulation_view``),
+and the affine views of phi and phi + 180 differ by a half turn, which SIFT does not see."""
 
 MIN_VIEW_AREA_FRAC = 0.005
 """Patches whose textured cells cover less of the image than this get no view (as
@@ -267,7 +284,7 @@ def rectifications_within_budget(
     however large (a plane hypothesis seen near grazing), takes another's pixels. Each
     patch's view is computed once, and its mask only at the final scale. ``turn``:
     views turned to their smallest box (rectify.patch_view)."""
-    views = [(i, patch_view(camera, patches[i], conf, turn)) for i in indices]
+    views = [(i, view_of_patch(camera, patches[i], conf, turn)) for i in indices]
     views = [(i, v) for i, v in views if v is not None]
     claims = shared_cells(np.stack([v.mask for _, v in views])) if views else None
     scales = np.ones(len(views))
@@ -282,6 +299,17 @@ def rectifications_within_budget(
         scales *= np.sqrt(np.minimum(1.0, caps / sizes))
     rects = (finish_rectification(camera, v, i, conf, s) for (i, v), s in zip(views, scales))
     return [r for r in rects if r is not None]
+
+
+def view_of_patch(
+    camera: pycolmap.Camera, patch: Patch, conf: RectifyConf, turn: bool = True
+) -> PatchView | None:
+    """A patch's view before the budget: ASIFT's tilt simulation for a blind patch
+    (``tilt_simulation_view``: an orientation sampled, not estimated), else the
+    rectification of its plane (rectify.patch_view)."""
+    if patch.axis == BLIND_AXIS:
+        return tilt_simulation_view(camera, patch, conf, turn)
+    return patch_view(camera, patch, conf, turn)
 
 
 def shared_cells(masks: np.ndarray) -> np.ndarray:
@@ -353,8 +381,9 @@ def blind_patches(
     """Whole-grid patches (BLIND_AXIS, masks of the (h, w) work grid ``shape``) of planes
     sampled as ASIFT samples affine tilts, for an image where no estimate (depth, lines) gave
     a view: for each tilt t, planes seen at arccos(1 / t) from the ray through the image
-    centre, tilted towards image directions phi = 0, s / t, 2 s / t, ... < 360 degrees
-    (s = ``longitude_step_deg``): 10 + 20 views with the defaults. Normals face the camera."""
+    centre, tilted towards image directions phi = 0, s / t, 2 s / t, ... < 180 degrees
+    (s = ``longitude_step_deg``): 5 + 10 views with the defaults, ASIFT's. Normals face the
+    camera. Their views: ``tilt_simulation_view``."""
     h, w = shape
     v = cam_utils.image_to_rays(camera, [camera.width / 2.0, camera.height / 2.0])[0]
     v /= np.linalg.norm(v)  # the ray through the image centre (COLMAP pixels)
@@ -365,8 +394,72 @@ def blind_patches(
     out = []
     for t in tilts:
         theta = np.arccos(1.0 / t)
-        for phi in np.deg2rad(np.arange(0.0, 360.0, longitude_step_deg / t)):
+        for phi in np.deg2rad(np.arange(0.0, 180.0, longitude_step_deg / t)):
             d = np.cos(phi) * e1 + np.sin(phi) * e2
             normal = -np.cos(theta) * v + np.sin(theta) * d
             out.append(Patch(mask, BLIND_AXIS, normal, 1.0))
     return out
+
+
+def tilt_simulation_view(
+    camera: pycolmap.Camera, patch: Patch, conf: RectifyConf, turn: bool = True
+) -> PatchView | None:
+    """The view of a blind patch (views.blind_patches: an orientation sampled, not
+    estimated): ASIFT's tilt simulation instead of a perspective rectification. With t =
+    1 / cos of the patch's viewing angle at the image centre and d its tilt direction, the
+    image (in normalised coordinates: distortion undone) is compressed by t across d, an
+    affine map: a plane of that orientation is undone to first order at the centre, no
+    part of the image is enlarged (the larger singular value is 1 at the median, ASIFT's
+    and the coarsest rule's), and neither the focal length nor the perspective of a
+    whole-image plane (whose far side a rectification stretches up to the viewing-angle
+    limit) sets the view's size. ``turn``: d is turned onto the view's x axis (ASIFT's
+    rotation); without it (upright SIFT) the view keeps the image's axes."""
+    mask = np.asarray(patch.mask, bool)
+    gh, gw = mask.shape
+    cells = np.flatnonzero(mask)
+    if len(cells) == 0:
+        return None
+    centre = [camera.width / 2.0, camera.height / 2.0]
+    v = cam_utils.image_to_rays(camera, centre)[0]
+    v /= np.linalg.norm(v)
+    n = np.asarray(patch.normal, np.float64) / np.linalg.norm(patch.normal)
+    cos0 = float(-(n @ v))
+    d = n + cos0 * v  # the tilt direction, perpendicular to v
+    if not 0.0 < cos0 < 1.0 or np.hypot(d[0], d[1]) < 1e-12:
+        return None
+    a = -np.arctan2(d[1], d[0])  # the rotation that takes d onto +x
+    Rz = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    A = np.diag([1.0, cos0])  # compress y (across d) by t
+    R = np.eye(3)
+    if turn:
+        R[:2, :2] = Rz
+    else:
+        A = Rz.T @ A @ Rz
+    sx, sy = camera.width / gw, camera.height / gh
+    grid = cam_utils.grid_rays(camera, gw, gh).reshape(-1, 3)
+    # the box of the hull: each grid row's end cells where the map is affine (pinhole)
+    box = cells[row_ends(cells // gw)] if cam_utils.is_pinhole(camera) else cells
+    u = np.stack(virtual_coords(R, grid[box]), 1) @ A.T
+    if turn:  # the compressed image (a parallelogram) turned to its smallest box
+        Rfit = fitting_roll(u)[:2, :2]
+        A, u = Rfit @ A, u @ Rfit.T
+    sel = np.linspace(0, len(cells) - 1, min(len(cells), MAX_FOCAL_SAMPLES)).astype(np.int64)
+    rows, cols = np.divmod(cells[sel], gw)
+    xy = np.stack([(cols + OFFSET) * sx, (rows + OFFSET) * sy], 1)
+    _, Ju = rays_to_rectified_jacobian(R, grid[cells[sel]])
+    J = A @ image_to_view_jacobian(camera, Ju, xy)
+    f = view_focal(singular_values_2x2(J), "coarsest")
+    if f is None:
+        return None
+    half = np.nanmax((0.5 * np.abs(J).reshape(-1, 2) @ np.array([sx, sy])).reshape(-1, 2), axis=0)
+    cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
+    return PatchView(
+        normal=np.array([0.0, 0.0, -1.0]),  # the image plane's: the view is an affine image
+        R=R,
+        mask=mask,
+        cos_max=cos_max,
+        f=f,
+        lo=u.min(0) - half,
+        hi=u.max(0) + half,
+        A=A,
+    )

@@ -143,13 +143,13 @@ def test_view_jacobian_is_the_product_with_the_cameras(name):
     """d(u)/d(image xy) of a pinhole camera (K^-1 scales Ju's columns) has exactly the
     numbers of the product with K^-1 at every cell; a distorted camera's is the product
     with its undistortion's central differences."""
-    from rectified_colmap.rectify import _image_to_ray_jacobian, _image_to_view_jacobian
+    from rectified_colmap.rectify import _image_to_ray_jacobian, image_to_view_jacobian
 
     cam = camera(name)
     rng = np.random.default_rng(3)
     Ju = rng.normal(size=(500, 2, 2)) * 10.0 ** rng.uniform(-3, 1, (500, 1, 1))
     xy = rng.uniform([0, 0], [W, H], (500, 2))
-    J = _image_to_view_jacobian(cam, Ju, xy)
+    J = image_to_view_jacobian(cam, Ju, xy)
     if cam_utils.is_pinhole(cam):
         Ki = np.linalg.inv(cam_utils.calibration_matrix(cam))[:2, :2]
         assert np.array_equal(J, Ju @ np.broadcast_to(Ki, (500, 2, 2)))
@@ -676,56 +676,68 @@ def test_tilt_bank_recovers_matches_lost_to_an_orientation_error():
 @pytest.mark.parametrize("name", ["PINHOLE", "OPENCV"])
 def test_blind_patches_sample_asift_tilts_exactly(name):
     """Blind patches: for each tilt t, normals at exactly arccos(1 / t) from the ray through
-    the image centre, tilt directions 72 / t degrees apart over 360 (10 for t = 2, 20 for 4),
-    whole-grid masks, BLIND_AXIS; the view of one undoes a tilt t at the image centre: the
-    image -> view Jacobian there has singular values in the ratio t."""
+    the image centre, tilt directions 72 / t degrees apart over 180 (ASIFT's: an affine
+    view of phi and of phi + 180 are the same up to a half turn; 5 for t = 2, 10 for 4),
+    whole-grid masks, BLIND_AXIS; the view of one compresses by exactly t at the image
+    centre: the image -> view Jacobian there has singular values in the ratio t."""
     from rectified_colmap.planes import BLIND_AXIS
-    from rectified_colmap.views import blind_patches
+    from rectified_colmap.rectify import finish_rectification
+    from rectified_colmap.views import blind_patches, view_of_patch
 
     cam = camera(name)
     out = blind_patches(cam, (GH, GW), (2.0, 4.0), 72.0)
-    assert len(out) == 10 + 20
+    assert len(out) == 5 + 10
     c = np.array([[cam.width / 2.0, cam.height / 2.0]])
     v = unit(np.append(cam.cam_from_img(c)[0], 1.0))
     tilts = np.array([1.0 / -(p.normal @ v) for p in out])
-    np.testing.assert_allclose(tilts, [2.0] * 10 + [4.0] * 20, rtol=1e-12)
-    for group in (out[:10], out[10:]):  # consecutive directions equally spaced about v
+    np.testing.assert_allclose(tilts, [2.0] * 5 + [4.0] * 10, rtol=1e-12)
+    for group in (out[:5], out[5:]):  # consecutive directions equally spaced about v
         d = [unit(p.normal - (p.normal @ v) * v) for p in group]
-        step = np.degrees([np.arccos(np.clip(a @ b, -1, 1)) for a, b in zip(d, d[1:] + d[:1])])
-        np.testing.assert_allclose(step, 360.0 / len(group), atol=1e-9)
+        step = np.degrees([np.arccos(np.clip(a @ b, -1, 1)) for a, b in zip(d, d[1:])])
+        np.testing.assert_allclose(step, 180.0 / len(group), atol=1e-9)
     assert all(p.axis == BLIND_AXIS and p.mask.shape == (GH, GW) and p.mask.all() for p in out)
     # square pixels, principal point at the centre: the image plane is square to that ray
     pinhole = make_camera("PINHOLE", [200.0, 200.0, W / 2, H / 2], W, H)
-    for p, t in zip(blind_patches(pinhole, (GH, GW), (2.0, 4.0), 72.0)[::10], (2.0, 4.0, 4.0)):
-        rect = plan_rectification(pinhole, p, 0, RectifyConf(max_viewing_angle_deg=89.0))
-        Hv = image_to_rectified_homography(pinhole, rect)
-        eps = 1e-3  # numeric Jacobian at the image centre
-        pts = np.array([[0, 0], [eps, 0], [0, eps]]) + c
-        q = np.c_[pts, np.ones(3)] @ Hv.T
-        q = q[:, :2] / q[:, 2:]
-        s = np.linalg.svd(np.stack([q[1] - q[0], q[2] - q[0]], 1) / eps, compute_uv=False)
-        assert s[0] / s[1] == pytest.approx(t, rel=1e-4)
+    for p, t in zip(blind_patches(pinhole, (GH, GW), (2.0, 4.0), 72.0)[::5], (2.0, 4.0, 4.0)):
+        conf = RectifyConf()
+        rect = finish_rectification(pinhole, view_of_patch(pinhole, p, conf), 0, conf, 1.0)
+        M = image_to_rectified_homography(pinhole, rect)
+        s = np.linalg.svd(M[:2, :2] / M[2, 2], compute_uv=False)  # affine: the same everywhere
+        assert s[0] / s[1] == pytest.approx(t, rel=1e-9)
 
 
-def test_blind_views_compress_as_asift():
-    """A blind patch's view compresses instead of stretching (view_resolution coarsest,
-    whatever the conf says): the median larger singular value of the image -> view Jacobian
-    is 1; a plane hypothesis of the same normal follows the conf (finest: the smaller is)."""
+@pytest.mark.parametrize("turn", [True, False])
+def test_blind_views_simulate_asift_tilts(turn):
+    """A blind patch's view is ASIFT's tilt simulation, whatever the conf's resolution
+    rule: an affine map of the image (the homography's last row 0 0 1, the same linear part
+    everywhere), nothing enlarged (its larger singular value 1 on a square-pixel pinhole)
+    and the other 1 / t, compressing across the tilt direction d, not along it; with
+    ``turn`` off (upright SIFT) the map is symmetric: the image's axes are kept. A plane
+    hypothesis of the same normal is a perspective rectification that stretches (finest)."""
     from rectified_colmap.planes import BLIND_AXIS
-    from rectified_colmap.rectify import patch_view
+    from rectified_colmap.rectify import finish_rectification, patch_view, view_camera
+    from rectified_colmap.views import view_of_patch
 
-    cam = camera("PINHOLE")
-    n = unit([-0.8, 0.15, -0.55])
+    cam = make_camera("PINHOLE", [300.0, 300.0, W / 2, H / 2], W, H)
+    t = 3.0
+    d = unit([0.8, 0.6, 0.0])  # the tilt direction in the image
+    n = -np.array([0.0, 0.0, 1.0]) / t + np.sqrt(1 - 1 / t**2) * d
     conf = RectifyConf(view_resolution="finest")
-    blind = patch_view(cam, Patch(np.ones((GH, GW), bool), BLIND_AXIS, n, 1.0), conf)
+    view = view_of_patch(cam, Patch(np.ones((GH, GW), bool), BLIND_AXIS, n, 1.0), conf, turn)
+    rect = finish_rectification(cam, view, 0, conf, 1.0)
+    Hv = image_to_rectified_homography(cam, rect)
+    np.testing.assert_allclose(Hv[2], [0.0, 0.0, 1.0], atol=1e-12)
+    M = Hv[:2, :2]
+    np.testing.assert_allclose(np.linalg.svd(M, compute_uv=False), [1.0, 1.0 / t], rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(M @ d[:2]), 1.0, rtol=1e-9)  # d is kept
+    np.testing.assert_allclose(np.linalg.norm(M @ [-d[1], d[0]]), 1.0 / t, rtol=1e-9)
+    if not turn:
+        np.testing.assert_allclose(M, M.T, atol=1e-12)
+    # the mask is the whole image compressed: its pixels / t (to the border's pixels)
+    assert rect.mask.sum() == pytest.approx(W * H / t, rel=0.02)
     hyp = patch_view(cam, Patch(np.ones((GH, GW), bool), HYPOTHESIS_AXIS, n, 1.0), conf)
-    coarse = patch_view(
-        cam,
-        Patch(np.ones((GH, GW), bool), HYPOTHESIS_AXIS, n, 1.0),
-        replace(conf, view_resolution="coarsest"),
-    )
-    assert blind.f == pytest.approx(coarse.f, rel=1e-12)
-    assert hyp.f > 1.5 * blind.f  # the hypothesis stretches: ~ the tilt more pixels per axis
+    hyp_pixels = np.prod(view_camera(hyp, conf, 1.0)[1])
+    assert hyp_pixels > t * rect.pixels  # the rectification stretches; the simulation does not
 
 
 def test_blind_views_match_an_oblique_plane_the_depth_calls_frontal():
