@@ -411,11 +411,26 @@ def upsampled_rectification(rect: Rectification, factor: int) -> Rectification:
     return replace(rect, K=S @ rect.K, size=(w * factor, h * factor), mask=mask)
 
 
+def antialias_factor(camera: pycolmap.Camera, rect: Rectification) -> int:
+    """How much finer ``warp_to_rectified`` renders an affine view (views.tilt_simulation_view
+    on a pinhole camera) before averaging it down: the ceiling of its compression (the view
+    -> image map's larger singular value), so a view pixel is the mean of the image pixels it
+    covers, not their alias (ASIFT blurs before it subsamples); 1 for perspective views."""
+    if not cam_utils.is_pinhole(camera):
+        return 1
+    H = image_to_rectified_homography(camera, rect)
+    if np.abs(H[2, :2]).max() > 1e-12 * abs(H[2, 2]):
+        return 1
+    s = np.linalg.svd(np.linalg.inv(H[:2, :2] / H[2, 2]), compute_uv=False)[0]
+    return max(1, int(np.ceil(s - 1e-6)))
+
+
 def warp_to_rectified(
     image: np.ndarray, camera: pycolmap.Camera, rect: Rectification
 ) -> np.ndarray:
-    """Render the rectified patch (height, width[, C]) from the original image (bilinear);
-    pixels outside rect.mask are 0."""
+    """Render the rectified patch (height, width[, C]) from the original image (bilinear;
+    affine views that compress, area-averaged: ``antialias_factor``); pixels outside
+    rect.mask are 0."""
     image = np.asarray(image)
     if image.shape[:2] != (camera.height, camera.width):
         raise ValueError(
@@ -423,7 +438,11 @@ def warp_to_rectified(
             f"the camera is {camera.width}x{camera.height}"
         )
     w, h = rect.size
-    if cam_utils.is_pinhole(camera):
+    k = antialias_factor(camera, rect)
+    if k > 1:  # k x finer, then each view pixel the mean of the image pixels it covers
+        fine = warp_to_rectified(image, camera, upsampled_rectification(rect, k))
+        out = cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA)
+    elif cam_utils.is_pinhole(camera):
         H = to_opencv_homography(image_to_rectified_homography(camera, rect))
         out = cv2.warpPerspective(
             image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0

@@ -832,3 +832,34 @@ def test_views_that_add_almost_nothing_are_planned_again_with_blind_views(monkey
     # the switch itself: a yield counted as almost nothing re-plans the whole plane's view
     monkeypatch.setattr(budget_module, "BLIND_YIELD_FRAC", 1e9)
     assert run(np.ones((h, w), bool), conf)[2] == {False, True}
+
+
+def test_tilt_simulations_are_antialiased():
+    """A tilt simulation that compresses the image by 4 is rendered 4 x finer and averaged
+    down (rectify.antialias_factor): a sinusoid of 0.3 cycles per pixel across the compressed
+    direction, beyond the view's Nyquist limit, is damped to a faint ripple (as ASIFT's blur
+    before subsampling damps it), where plain bilinear sampling every 4 pixels aliases it
+    to a wave of nearly its full amplitude; a perspective rectification keeps plain
+    sampling (factor 1)."""
+    from rectified_colmap.conventions import to_opencv_homography
+    from rectified_colmap.planes import BLIND_AXIS
+    from rectified_colmap.rectify import antialias_factor, finish_rectification, warp_to_rectified
+    from rectified_colmap.views import view_of_patch
+
+    cam = make_camera("PINHOLE", [300.0, 300.0, W / 2, H / 2], W, H)
+    t = 4.0
+    n = -np.array([0.0, 0.0, 1.0]) / t + np.sqrt(1 - 1 / t**2) * np.array([0.0, 1.0, 0.0])
+    conf = RectifyConf()
+    patch = Patch(np.ones((GH, GW), bool), BLIND_AXIS, n, 1.0)
+    rect = finish_rectification(cam, view_of_patch(cam, patch, conf, False), 0, conf, 1.0)
+    assert antialias_factor(cam, rect) == 4  # compressed by t along the image's x
+    x = np.arange(W) + 0.5
+    wave = np.tile(127.5 + 100 * np.sin(2 * np.pi * 0.3 * x), (H, 1)).astype(np.float32)
+    inner = cv2.erode(rect.mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    view = warp_to_rectified(wave, cam, rect)[inner]
+    Hv = to_opencv_homography(image_to_rectified_homography(cam, rect))
+    plain = cv2.warpPerspective(wave, Hv, rect.size, flags=cv2.INTER_LINEAR)[inner]
+    assert abs(view.mean() - 127.5) < 3 and view.std() < 15, (view.mean(), view.std())
+    assert plain.std() > 30, plain.std()  # aliased
+    hyp = plan_rectification(cam, Patch(np.ones((GH, GW), bool), HYPOTHESIS_AXIS, n, 1.0), 0)
+    assert antialias_factor(cam, hyp) == 1
