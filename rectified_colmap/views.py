@@ -409,18 +409,17 @@ def tilt_simulation_view(
     1 / cos of the patch's viewing angle at the image centre and d its tilt direction, the
     image (in normalised coordinates: distortion undone) is compressed by t across d, an
     affine map: a plane of that orientation is undone to first order at the centre, no
-    part of the image is enlarged (the larger singular value is 1 at the median, ASIFT's
-    and the coarsest rule's), and neither the focal length nor the perspective of a
-    whole-image plane (whose far side a rectification stretches up to the viewing-angle
-    limit) sets the view's size. ``turn``: d is turned onto the view's x axis (ASIFT's
-    rotation); without it (upright SIFT) the view keeps the image's axes."""
+    part of the image is enlarged (the larger singular value is 1 at the median: ASIFT's
+    rule), and neither the focal length nor a whole-image plane's perspective (stretched up
+    to the viewing-angle limit by a rectification) sets the view's size. ``turn``: d is
+    turned onto the view's x axis, as ASIFT turns; without it (upright SIFT) the view keeps
+    the image's axes."""
     mask = np.asarray(patch.mask, bool)
     gh, gw = mask.shape
     cells = np.flatnonzero(mask)
     if len(cells) == 0:
         return None
-    centre = [camera.width / 2.0, camera.height / 2.0]
-    v = cam_utils.image_to_rays(camera, centre)[0]
+    v = cam_utils.image_to_rays(camera, [camera.width / 2.0, camera.height / 2.0])[0]
     v /= np.linalg.norm(v)
     n = np.asarray(patch.normal, np.float64) / np.linalg.norm(patch.normal)
     cos0 = float(-(n @ v))
@@ -452,12 +451,11 @@ def tilt_simulation_view(
     if f is None:
         return None
     half = np.nanmax((0.5 * np.abs(J).reshape(-1, 2) @ np.array([sx, sy])).reshape(-1, 2), axis=0)
-    cos_max = np.cos(np.deg2rad(conf.max_viewing_angle_deg))
     return PatchView(
         normal=np.array([0.0, 0.0, -1.0]),  # the image plane's: the view is an affine image
         R=R,
         mask=mask,
-        cos_max=cos_max,
+        cos_max=np.cos(np.deg2rad(conf.max_viewing_angle_deg)),
         f=f,
         lo=u.min(0) - half,
         hi=u.max(0) + half,
