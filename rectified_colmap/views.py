@@ -276,7 +276,8 @@ def rectifications_within_budget(
     pixel_budget: float,
     turn: bool = True,
 ) -> list[Rectification]:
-    """Rectifications (plan_rectification) of the given patches within ``pixel_budget``
+    """Views (``view_of_patch``: rectifications, a blind patch's tilt simulation) of the
+    given patches within ``pixel_budget``
     (their summed sizes w x h, to within a view's border when views are tiny). When the
     views' own sizes exceed it, each view is scaled down to at most a common claim per work
     cell of its patch, a cell held by several views' patches shared among them
