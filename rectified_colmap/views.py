@@ -35,10 +35,9 @@ import pycolmap
 
 from . import camera as cam_utils
 from .config import RectifyConf
-from .geometry import axis_angle_rotation
-from .planes import BLIND_AXIS, HYPOTHESIS_AXIS, REST_AXIS, Patch
 from .conventions import OFFSET
-from .geometry import singular_values_2x2
+from .geometry import axis_angle_rotation, singular_values_2x2
+from .planes import BLIND_AXIS, HYPOTHESIS_AXIS, REST_AXIS, Patch
 from .rectify import (
     MAX_FOCAL_SAMPLES,
     PatchView,
@@ -373,6 +372,13 @@ def viewing_coverage(masks: np.ndarray) -> np.ndarray:
     return cover
 
 
+def centre_ray(camera: pycolmap.Camera) -> np.ndarray:
+    """(3,) unit ray through the image centre (COLMAP pixels): the axis about which
+    ``blind_patches`` samples tilts and ``tilt_simulation_view`` measures them."""
+    v = cam_utils.image_to_rays(camera, [camera.width / 2.0, camera.height / 2.0])[0]
+    return v / np.linalg.norm(v)
+
+
 def blind_patches(
     camera: pycolmap.Camera,
     shape: tuple[int, int],
@@ -386,8 +392,7 @@ def blind_patches(
     (s = ``longitude_step_deg``): 5 + 10 views with the defaults, ASIFT's. Normals face the
     camera. Their views: ``tilt_simulation_view``."""
     h, w = shape
-    v = cam_utils.image_to_rays(camera, [camera.width / 2.0, camera.height / 2.0])[0]
-    v /= np.linalg.norm(v)  # the ray through the image centre (COLMAP pixels)
+    v = centre_ray(camera)
     e1 = np.array([1.0, 0.0, 0.0]) - v[0] * v  # the image's x, perpendicular to v
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(v, e1)
@@ -420,8 +425,7 @@ def tilt_simulation_view(
     cells = np.flatnonzero(mask)
     if len(cells) == 0:
         return None
-    v = cam_utils.image_to_rays(camera, [camera.width / 2.0, camera.height / 2.0])[0]
-    v /= np.linalg.norm(v)
+    v = centre_ray(camera)
     n = np.asarray(patch.normal, np.float64) / np.linalg.norm(patch.normal)
     cos0 = float(-(n @ v))
     d = n + cos0 * v  # the tilt direction, perpendicular to v
